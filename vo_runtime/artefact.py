@@ -1,0 +1,72 @@
+"""Reading an exported artefact directory (torch-free).
+
+An artefact is a directory written by `toolkit export`:
+
+- ``model.onnx``: fixed input ``image`` float32 [1, 1, H, W], grayscale scaled to [0, 1].
+  Keypoint mode outputs (K = ``postprocess.max_keypoints``):
+    ``keypoints``   float32 [K, 2]  (x, y) in input pixels, pixel centres at integers,
+    ``scores``      float32 [K]     sorted descending,
+    ``descriptors`` float32 [K, D]  L2-normalised,
+    ``num_valid``   int32   [1]     the first ``num_valid`` rows are real detections; the rest is padding.
+  Dense mode (``--dense``) outputs ``heatmap`` [1, 1, H, W] and ``descriptors_coarse`` [1, D, H/8, W/8].
+- ``manifest.json``: target, opset, input shape and normalisation, outputs, precision, deform strategy,
+  ``onnx.sha256`` of model.onnx, source checkpoint hash, toolkit version and parity figures.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+from vo_runtime.errors import ArtefactError
+
+MANIFEST_NAME = "manifest.json"
+MODEL_NAME = "model.onnx"
+ARTEFACT_FORMAT = "edgefeat-artefact/1"
+
+
+def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
+    """Hex sha256 of a file, read in chunks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(chunk), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def load_manifest(artefact_dir: str | Path) -> dict[str, Any]:
+    """Read ``manifest.json`` of an artefact directory; raise `ArtefactError` if absent or malformed."""
+    directory = Path(artefact_dir)
+    if not directory.is_dir():
+        raise ArtefactError(f"artefact directory not found: {directory}")
+    path = directory / MANIFEST_NAME
+    if not path.is_file():
+        raise ArtefactError(f"{directory} is not an artefact: {MANIFEST_NAME} is missing")
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ArtefactError(f"{path} is not valid JSON ({exc})") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != ARTEFACT_FORMAT:
+        raise ArtefactError(f"{path} is not an {ARTEFACT_FORMAT} manifest")
+    return manifest
+
+
+def verify_artefact(artefact_dir: str | Path) -> dict[str, Any]:
+    """Load the manifest and check that model.onnx matches its recorded sha256.
+
+    Returns the manifest. Raises `ArtefactError` naming what is wrong.
+    """
+    directory = Path(artefact_dir)
+    manifest = load_manifest(directory)
+    model_path = directory / manifest.get("onnx", {}).get("file", MODEL_NAME)
+    if not model_path.is_file():
+        raise ArtefactError(f"{directory}: {model_path.name} is missing")
+    expected = manifest.get("onnx", {}).get("sha256")
+    actual = sha256_file(model_path)
+    if expected != actual:
+        raise ArtefactError(
+            f"{model_path} fails its manifest checksum (sha256 {actual[:12]}..., manifest says "
+            f"{str(expected)[:12]}...): the file was changed or truncated after export"
+        )
+    return manifest
