@@ -1,0 +1,113 @@
+"""Checkpoints: one safetensors file whose header metadata carries the model's JSON config.
+
+Loading never unpickles: safetensors holds raw tensors only, and a Magic Leap ``.pth`` is read with
+``torch.load(weights_only=True)``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from models.featurenet import FeatureNet, FeatureNetConfig
+from models.superpoint import SuperPointConfig, SuperPointNet, load_superpoint_v1
+from toolkit.errors import ToolkitError
+from vo_runtime.artefact import sha256_file
+
+CHECKPOINT_FORMAT = "edgefeat-checkpoint/1"
+
+
+class CheckpointError(ToolkitError):
+    """A checkpoint is missing, corrupt, or does not match the architecture it claims."""
+
+
+@dataclass
+class CheckpointInfo:
+    path: str
+    sha256: str
+    arch: str
+    config: dict[str, Any]
+    metadata: dict[str, Any]
+
+
+def build_model(arch: str, config: dict[str, Any] | None = None) -> nn.Module:
+    """Instantiate ``featurenet`` or ``superpoint`` from a plain config dict."""
+    config = dict(config or {})
+    if arch == "featurenet":
+        return FeatureNet(FeatureNetConfig(**config))
+    if arch == "superpoint":
+        return SuperPointNet(SuperPointConfig(**config))
+    raise CheckpointError(f"unknown architecture {arch!r} (expected featurenet or superpoint)")
+
+
+def save_checkpoint(model: nn.Module, path: str | Path, metadata: dict[str, Any] | None = None) -> Path:
+    """Write ``model`` to ``path`` (.safetensors) atomically: a temp file in the same folder, then rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    header = {
+        "format": CHECKPOINT_FORMAT,
+        "arch": model.arch,
+        "config": json.dumps(model.config.to_dict()),
+        "metadata": json.dumps(metadata or {}),
+    }
+    tensors = {key: value.detach().cpu().contiguous() for key, value in model.state_dict().items()}
+    handle, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".safetensors", dir=path.parent)
+    os.close(handle)
+    try:
+        save_file(tensors, tmp, metadata=header)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            header = handle.metadata() or {}
+        return load_file(str(path)), header
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise CheckpointError(f"{path} is not a readable safetensors checkpoint ({str(exc).splitlines()[0]})") from None
+
+
+def load_checkpoint(path: str | Path) -> tuple[nn.Module, CheckpointInfo]:
+    """Load a ``.safetensors`` EdgeFeat checkpoint or a Magic Leap ``superpoint_v1.pth``; model in eval mode.
+
+    Raises `CheckpointError` (exit 2 in the CLI) for a missing, corrupt or mismatched file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint not found: {path}")
+    digest = sha256_file(path)
+    if path.suffix in (".pth", ".pt"):
+        try:
+            model = load_superpoint_v1(path)
+        except (ValueError, RuntimeError, OSError, EOFError) as exc:
+            raise CheckpointError(f"cannot load {path}: {str(exc).splitlines()[0]}") from None
+        return model, CheckpointInfo(str(path), digest, "superpoint", model.config.to_dict(), {"source": "superpoint_v1"})
+    tensors, header = _read_safetensors(path)
+    if header.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path} is a safetensors file but not an EdgeFeat checkpoint (no {CHECKPOINT_FORMAT} header)")
+    try:
+        config = json.loads(header["config"])
+        metadata = json.loads(header.get("metadata", "{}"))
+        model = build_model(header["arch"], config)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CheckpointError(f"{path} has a malformed config header ({exc})") from None
+    try:
+        model.load_state_dict(tensors, strict=True)
+    except RuntimeError as exc:
+        first = str(exc).splitlines()[0] + " " + " ".join(str(exc).splitlines()[1:2])
+        raise CheckpointError(f"{path} does not match its {header['arch']} config: {first.strip()[:200]}") from None
+    return model.eval(), CheckpointInfo(str(path), digest, header["arch"], config, metadata)

@@ -1,0 +1,173 @@
+"""Deformable 3x3 convolution (DCN v1/v2) in plain PyTorch, exportable two ways.
+
+One sampler, ``deform_conv2d``, serves training (autograd) and the ``portable`` ONNX export: it uses only
+Pad, Floor, Clip, Cast, Gather (non-negative indices), Mul/Add and MatMul, which TensorRT 8.0 parses at
+opset 13. The ``native`` strategy emits the ONNX ``DeformConv`` op (opset 19) that onnxruntime >= 1.25
+runs with its own kernel; its PyTorch side still runs ``deform_conv2d`` so tracing sees real values.
+
+Sampling semantics (same as torchvision and ONNX DeformConv): tap k of output pixel (i, j) reads the
+input at (i*s - p + ky*d + dy, j*s - p + kx*d + dx) by bilinear interpolation, where each of the four
+corners that falls outside the image contributes zero.
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+DeformStrategy = Literal["torch", "native"]
+
+
+def _output_size(size: int, kernel: int, stride: int, padding: int, dilation: int) -> int:
+    return (size + 2 * padding - dilation * (kernel - 1) - 1) // stride + 1
+
+
+def deform_conv2d(
+    x: torch.Tensor,
+    offset: torch.Tensor,
+    weight: torch.Tensor,
+    bias: torch.Tensor | None = None,
+    mask: torch.Tensor | None = None,
+    stride: int = 1,
+    padding: int = 1,
+    dilation: int = 1,
+) -> torch.Tensor:
+    """Deformable convolution by bilinear gathering (groups = offset groups = 1).
+
+    Args:
+        x: input [B, C, H, W].
+        offset: [B, 2*kh*kw, Ho, Wo], (dy, dx) per kernel tap in row-major tap order.
+        weight: [Cout, C, kh, kw].
+        bias: [Cout] or None.
+        mask: modulation [B, kh*kw, Ho, Wo] or None (DCN v1).
+    Returns:
+        [B, Cout, Ho, Wo].
+    """
+    batch, channels, height, width = x.shape
+    out_channels, _, kh, kw = weight.shape
+    taps = kh * kw
+    out_h = _output_size(height, kh, stride, padding, dilation)
+    out_w = _output_size(width, kw, stride, padding, dilation)
+    locations = out_h * out_w
+
+    # Regular grid positions of every tap, [taps, Ho, Wo], plus the learned offsets.
+    dtype, device = x.dtype, x.device
+    base_y = (torch.arange(out_h, dtype=dtype, device=device) * stride - padding).view(1, out_h, 1)
+    base_x = (torch.arange(out_w, dtype=dtype, device=device) * stride - padding).view(1, 1, out_w)
+    tap_y = (torch.arange(kh, dtype=dtype, device=device) * dilation).repeat_interleave(kw).view(taps, 1, 1)
+    tap_x = (torch.arange(kw, dtype=dtype, device=device) * dilation).repeat(kh).view(taps, 1, 1)
+    offset = offset.reshape(batch, taps, 2, out_h, out_w)
+    pos_y = base_y + tap_y + offset[:, :, 0]  # [B, taps, Ho, Wo]
+    pos_x = base_x + tap_x + offset[:, :, 1]
+
+    y0 = torch.floor(pos_y)
+    x0 = torch.floor(pos_x)
+    wy1 = pos_y - y0
+    wx1 = pos_x - x0
+    wy0 = 1.0 - wy1
+    wx0 = 1.0 - wx1
+
+    # A one-pixel zero border lets every out-of-image corner read a zero: clamping a corner to
+    # [-1, size] moves it onto the border without changing its (zero) value, and keeps indices >= 0.
+    padded_h, padded_w = height + 2, width + 2
+    rows = torch.stack([y0, y0, y0 + 1.0, y0 + 1.0]).clamp(-1.0, float(height)) + 1.0
+    cols = torch.stack([x0, x0 + 1.0, x0, x0 + 1.0]).clamp(-1.0, float(width)) + 1.0
+    weights = torch.stack([wy0 * wx0, wy0 * wx1, wy1 * wx0, wy1 * wx1])  # [4, B, taps, Ho, Wo]
+    if mask is not None:
+        weights = weights * mask.reshape(1, batch, taps, out_h, out_w)
+    batch_start = (torch.arange(batch, dtype=dtype, device=device) * (padded_h * padded_w)).view(1, batch, 1, 1, 1)
+    flat_index = (rows * padded_w + cols + batch_start).reshape(-1).to(torch.int64)
+
+    pixels = F.pad(x, (1, 1, 1, 1)).permute(0, 2, 3, 1).reshape(batch * padded_h * padded_w, channels)
+    corners = torch.index_select(pixels, 0, flat_index).reshape(4, batch, taps, locations, channels)
+    sampled = (corners * weights.reshape(4, batch, taps, locations, 1)).sum(0)  # [B, taps, L, C]
+
+    columns = sampled.permute(0, 2, 1, 3).reshape(batch, locations, taps * channels)
+    kernel = weight.permute(2, 3, 1, 0).reshape(taps * channels, out_channels)  # tap-major, then channel
+    out = torch.matmul(columns, kernel)  # [B, L, Cout]
+    if bias is not None:
+        out = out + bias
+    return out.permute(0, 2, 1).reshape(batch, out_channels, out_h, out_w)
+
+
+@torch.library.custom_op("edgefeat::deform_conv2d", mutates_args=())
+def native_deform_conv2d(
+    x: torch.Tensor, offset: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, mask: torch.Tensor | None
+) -> torch.Tensor:
+    """3x3, stride 1, padding 1 `deform_conv2d` as one opaque op, so the exporter emits ONNX ``DeformConv``."""
+    return deform_conv2d(x, offset, weight, bias, mask, 1, 1, 1)
+
+
+@native_deform_conv2d.register_fake
+def _native_deform_conv2d_shape(x, offset, weight, bias, mask):  # shapes only, for tracing
+    return x.new_empty(x.shape[0], weight.shape[0], x.shape[2], x.shape[3])
+
+
+def _deform_conv_symbolic(g, x, offset, weight, bias, mask):  # pragma: no cover - runs inside the exporter
+    inputs = [x, weight, offset, bias]
+    if not (mask.node().kind() == "prim::Constant" and mask.type().kind() == "NoneType"):
+        inputs.append(mask)
+    return g.op(
+        "DeformConv",
+        *inputs,
+        dilations_i=[1, 1],
+        group_i=1,
+        kernel_shape_i=[3, 3],
+        offset_group_i=1,
+        pads_i=[1, 1, 1, 1],
+        strides_i=[1, 1],
+    )
+
+
+# DeformConv entered the ONNX standard in opset 19 (onnxruntime >= 1.25 implements it on CPU).
+NATIVE_DEFORM_OPSET = 19
+torch.onnx.register_custom_op_symbolic("edgefeat::deform_conv2d", _deform_conv_symbolic, NATIVE_DEFORM_OPSET)
+
+
+class DeformableConv(nn.Module):
+    """3x3 deformable conv whose offsets (and optional DCNv2 mask) come from a depthwise-separable branch.
+
+    The kernel lives in a real ``nn.Conv2d`` so pruning tools see an ordinary conv. The offset branch
+    (depthwise 3x3 + BN + ReLU, then pointwise 1x1 to 2*9 offsets [+ 9 mask logits]) starts at zero, so
+    an untrained layer is exactly a plain 3x3 conv (with mask 0.5 if modulated).
+
+    Attributes:
+        strategy: ``"torch"`` (training and the portable export) or ``"native"`` (ONNX DeformConv).
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, modulated: bool = True) -> None:
+        super().__init__()
+        self.modulated = modulated
+        self.strategy: DeformStrategy = "torch"
+        taps = 9
+        self.offset_dw = nn.Conv2d(in_channels, in_channels, 3, padding=1, groups=in_channels, bias=False)
+        self.offset_bn = nn.BatchNorm2d(in_channels)
+        self.offset_pw = nn.Conv2d(in_channels, taps * (3 if modulated else 2), 1)
+        nn.init.zeros_(self.offset_pw.weight)
+        nn.init.zeros_(self.offset_pw.bias)
+        self.conv = nn.Conv2d(in_channels, out_channels, 3, padding=1)
+
+    def offsets_and_mask(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """x [B, C, H, W] -> offsets [B, 18, H, W], mask [B, 9, H, W] or None."""
+        branch = self.offset_pw(F.relu(self.offset_bn(self.offset_dw(x))))
+        if not self.modulated:
+            return branch, None
+        return branch[:, :18], torch.sigmoid(branch[:, 18:])
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        offset, mask = self.offsets_and_mask(x)
+        if self.strategy == "native":
+            return native_deform_conv2d(x, offset, self.conv.weight, self.conv.bias, mask)
+        return deform_conv2d(x, offset, self.conv.weight, self.conv.bias, mask, 1, 1, 1)
+
+
+def set_deform_strategy(model: nn.Module, strategy: DeformStrategy) -> nn.Module:
+    """Set the execution/export strategy of every `DeformableConv` in ``model``; returns ``model``."""
+    if strategy not in ("torch", "native"):
+        raise ValueError(f"unknown deform strategy {strategy!r}")
+    for module in model.modules():
+        if isinstance(module, DeformableConv):
+            module.strategy = strategy
+    return model

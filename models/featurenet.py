@@ -1,0 +1,128 @@
+"""FeatureNet: the depthwise-separable, deformable SuperPoint-style detector/descriptor.
+
+Layout (default widths, 240x320 input):
+
+    stem 3x3 conv 1->16 (H)            | maxpool
+    DS blocks at H/2, H/4, H/8         | maxpool between stages
+    DeformableConv 3x3 at H/8          | offsets from a depthwise-separable branch
+    detector head   DS block -> 1x1 -> 65 logits per 8x8 cell (64 pixels + dustbin)
+    descriptor head DS block -> 1x1 -> 256-d, L2-normalised
+
+The deformable conv sits at H/8: there it costs 1/64 of a full-resolution layer and sees the widest
+context, which is where geometric flexibility helps descriptors most.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from models.deform import DeformableConv
+
+ACTIVATIONS = ("elu", "relu")
+
+
+def make_activation(name: str) -> nn.Module:
+    """``elu`` (the paper's choice) or ``relu`` (fuses into Conv in onnxruntime and quantises to INT8)."""
+    if name == "elu":
+        return nn.ELU(inplace=True)
+    if name == "relu":
+        return nn.ReLU(inplace=True)
+    raise ValueError(f"activation must be one of {ACTIVATIONS}, got {name!r}")
+
+
+class DepthwiseSeparableBlock(nn.Module):
+    """Depthwise 3x3 + BN + ReLU, then pointwise 1x1 + BN + activation. [B, Cin, H, W] -> [B, Cout, H, W]."""
+
+    def __init__(self, in_channels: int, out_channels: int, activation: str) -> None:
+        super().__init__()
+        self.depthwise = nn.Conv2d(in_channels, in_channels, 3, padding=1, groups=in_channels, bias=False)
+        self.depthwise_bn = nn.BatchNorm2d(in_channels)
+        self.pointwise = nn.Conv2d(in_channels, out_channels, 1, bias=False)
+        self.pointwise_bn = nn.BatchNorm2d(out_channels)
+        self.activation = make_activation(activation)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = F.relu(self.depthwise_bn(self.depthwise(x)), inplace=True)
+        return self.activation(self.pointwise_bn(self.pointwise(x)))
+
+
+@dataclass
+class FeatureNetConfig:
+    """Widths per scale (H, H/2, H/4, H/8), DS blocks per scale, heads and activation."""
+
+    widths: list[int] = field(default_factory=lambda: [16, 32, 64, 128])
+    blocks: list[int] = field(default_factory=lambda: [0, 1, 2, 2])
+    head_channels: int = 128
+    descriptor_dim: int = 256
+    activation: str = "elu"
+    deformable: bool = True
+    modulated: bool = True
+
+    def __post_init__(self) -> None:
+        if len(self.widths) != 4 or len(self.blocks) != 4:
+            raise ValueError("widths and blocks need one entry per scale: H, H/2, H/4, H/8")
+        if any(int(w) < 1 for w in self.widths) or any(int(b) < 0 for b in self.blocks):
+            raise ValueError("widths must be >= 1 and blocks >= 0")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"activation must be one of {ACTIVATIONS}, got {self.activation!r}")
+        self.widths = [int(w) for w in self.widths]
+        self.blocks = [int(b) for b in self.blocks]
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class FeatureNet(nn.Module):
+    """Depthwise-separable SuperPoint-style network with one deformable conv at H/8.
+
+    forward(image [B, 1, H, W] gray in [0, 1], H and W divisible by 8) ->
+        {"logits": [B, 65, H/8, W/8], "descriptors": [B, D, H/8, W/8] (unit L2 norm over D)}
+    """
+
+    arch = "featurenet"
+
+    def __init__(self, config: FeatureNetConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or FeatureNetConfig()
+        cfg = self.config
+        act = cfg.activation
+        self.stem = nn.Sequential(
+            nn.Conv2d(1, cfg.widths[0], 3, padding=1, bias=False), nn.BatchNorm2d(cfg.widths[0]), make_activation(act)
+        )
+        stages: list[nn.Module] = []
+        channels = cfg.widths[0]
+        for scale, (width, count) in enumerate(zip(cfg.widths, cfg.blocks)):
+            layers: list[nn.Module] = [nn.MaxPool2d(2, 2)] if scale > 0 else []
+            for _ in range(count):
+                layers.append(DepthwiseSeparableBlock(channels, width, act))
+                channels = width
+            stages.append(nn.Sequential(*layers))
+        self.stages = nn.ModuleList(stages)
+        if cfg.deformable:
+            self.deform = DeformableConv(channels, channels, modulated=cfg.modulated)
+            self.deform_bn = nn.BatchNorm2d(channels)
+            self.deform_act = make_activation(act)
+        self.detector = nn.Sequential(
+            DepthwiseSeparableBlock(channels, cfg.head_channels, act), nn.Conv2d(cfg.head_channels, 65, 1)
+        )
+        self.descriptor = nn.Sequential(
+            DepthwiseSeparableBlock(channels, cfg.head_channels, act),
+            nn.Conv2d(cfg.head_channels, cfg.descriptor_dim, 1),
+        )
+
+    def backbone(self, image: torch.Tensor) -> torch.Tensor:
+        """image [B, 1, H, W] -> shared features [B, C, H/8, W/8]."""
+        x = self.stem(image)
+        for stage in self.stages:
+            x = stage(x)
+        if self.config.deformable:
+            x = self.deform_act(self.deform_bn(self.deform(x)))
+        return x
+
+    def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
+        features = self.backbone(image)
+        descriptors = F.normalize(self.descriptor(features), p=2.0, dim=1)
+        return {"logits": self.detector(features), "descriptors": descriptors}

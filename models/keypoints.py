@@ -1,0 +1,108 @@
+"""Heads to keypoints: softmax + depth-to-space, max-pool NMS, fixed-K top-k, descriptor sampling.
+
+Every function is written with fixed shapes and export-friendly ops (no GridSample, no GatherND, no
+NonZero; Gather indices are clamped to be non-negative), so the same code runs in PyTorch and inside the
+exported ONNX graph for TensorRT 8.0.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+CELL = 8
+
+
+def heatmap_from_logits(logits: torch.Tensor) -> torch.Tensor:
+    """logits [B, 65, h, w] -> keypoint probability [B, 1, 8h, 8w] (softmax over 65, dustbin dropped)."""
+    probabilities = torch.softmax(logits, dim=1)[:, :-1]
+    return F.pixel_shuffle(probabilities, CELL)
+
+
+def max_pool_nms(heatmap: torch.Tensor, radius: int) -> torch.Tensor:
+    """Keep local maxima in a (2r+1)^2 window, zero elsewhere. [B, 1, H, W] -> [B, 1, H, W]."""
+    if radius <= 0:
+        return heatmap
+    pooled = F.max_pool2d(heatmap, kernel_size=2 * radius + 1, stride=1, padding=radius)
+    return heatmap * (heatmap == pooled).to(heatmap.dtype)
+
+
+def border_mask(height: int, width: int, border: int, like: torch.Tensor) -> torch.Tensor:
+    """[H, W] mask, 1 inside, 0 within ``border`` pixels of the edge (a broadcast product of two 1-D masks)."""
+    rows = torch.zeros(height, dtype=like.dtype, device=like.device)
+    cols = torch.zeros(width, dtype=like.dtype, device=like.device)
+    rows[border : height - border] = 1.0
+    cols[border : width - border] = 1.0
+    return rows[:, None] * cols[None, :]
+
+
+def top_k_keypoints(scores: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """scores [H, W] -> keypoints [k, 2] (x, y) float and their scores [k], best first.
+
+    Coordinates come from the flat index in float arithmetic (exact below 2^24 pixels), avoiding
+    integer division, which TensorRT 8.0 handles poorly.
+    """
+    height, width = scores.shape
+    values, indices = torch.topk(scores.reshape(-1), k)
+    flat = indices.to(scores.dtype)
+    y = torch.floor(flat / width)
+    x = flat - y * width
+    return torch.stack([x, y], dim=1), values
+
+
+def sample_descriptors(descriptors: torch.Tensor, keypoints: torch.Tensor) -> torch.Tensor:
+    """Bilinearly sample a coarse descriptor map at pixel keypoints and re-normalise.
+
+    Args:
+        descriptors: [D, h, w], one vector per 8x8 cell, centred on the cell's centre pixel.
+        keypoints: [K, 2] (x, y) in full-resolution pixels (pixel centres at integers).
+    Returns:
+        [K, D], unit L2 norm. Positions beyond the outer cell centres take the edge value.
+    """
+    dim, height, width = descriptors.shape
+    u = ((keypoints[:, 0] + 0.5) / CELL - 0.5).clamp(0.0, float(width - 1))
+    v = ((keypoints[:, 1] + 0.5) / CELL - 0.5).clamp(0.0, float(height - 1))
+    u0 = torch.floor(u).clamp(max=float(max(width - 2, 0)))
+    v0 = torch.floor(v).clamp(max=float(max(height - 2, 0)))
+    wu = u - u0
+    wv = v - v0
+    u1 = (u0 + 1.0).clamp(max=float(width - 1))
+    v1 = (v0 + 1.0).clamp(max=float(height - 1))
+    table = descriptors.reshape(dim, height * width).transpose(0, 1)  # [h*w, D]
+    corners = torch.stack([v0 * width + u0, v0 * width + u1, v1 * width + u0, v1 * width + u1])
+    weights = torch.stack([(1 - wv) * (1 - wu), (1 - wv) * wu, wv * (1 - wu), wv * wu])  # [4, K]
+    gathered = torch.index_select(table, 0, corners.reshape(-1).to(torch.int64)).reshape(4, -1, dim)
+    sampled = (gathered * weights[:, :, None]).sum(0)
+    return F.normalize(sampled, p=2.0, dim=1)
+
+
+def extract_keypoints(
+    logits: torch.Tensor,
+    descriptors: torch.Tensor,
+    max_keypoints: int,
+    nms_radius: int = 4,
+    threshold: float = 0.005,
+    border: int = 4,
+    border_weights: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """One image's heads -> fixed-size keypoint set.
+
+    Args:
+        logits: [1, 65, h, w]; descriptors: [1, D, h, w].
+        border_weights: a precomputed `border_mask` [8h, 8w] (an export stores it as a constant).
+    Returns:
+        keypoints [K, 2] (x, y), scores [K] (descending), descriptors [K, D], num_valid [1] int32:
+        rows past ``num_valid`` scored at or below ``threshold`` and are padding.
+    """
+    heatmap = heatmap_from_logits(logits)
+    _, _, height, width = heatmap.shape
+    if border_weights is None:
+        border_weights = border_mask(height, width, border, heatmap)
+    scores = max_pool_nms(heatmap, nms_radius)[0, 0] * border_weights
+    keypoints, values = top_k_keypoints(scores, max_keypoints)
+    num_valid = (values > threshold).to(torch.int32).sum().reshape(1)
+    return {
+        "keypoints": keypoints,
+        "scores": values,
+        "descriptors": sample_descriptors(descriptors[0], keypoints),
+        "num_valid": num_valid,
+    }
