@@ -1,0 +1,1 @@
+"""Export: checkpoint -> verified ONNX artefact for a target profile (`export_artefact`)."""

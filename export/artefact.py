@@ -1,0 +1,197 @@
+"""`export_artefact`: checkpoint -> verified artefact directory (model.onnx, manifest.json, README.md).
+
+One entry point, per-target choices from the `TargetProfile`, and nothing on disk until every check has
+passed: the artefact is assembled in a temporary sibling directory and renamed into place.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import onnx
+import torch
+
+from export.checks import check_against_profile, require_non_negative_gathers
+from export.graphs import DENSE_OUTPUTS, KEYPOINT_OUTPUTS, DenseGraph, KeypointGraph
+from export.onnx_export import export_onnx, op_histogram
+from export.parity import default_parity_paths, images_in, measure_parity, prepare_image
+from export.readme import artefact_readme
+from models.checkpoint import load_checkpoint
+from models.deform import set_deform_strategy
+from profiles import TargetProfile, load_profile
+from toolkit import __version__
+from toolkit.errors import ToolkitError
+from vo_runtime.artefact import ARTEFACT_FORMAT, MANIFEST_NAME, MODEL_NAME, sha256_file
+
+# FP16 weights move scores by ~1e-3, enough to reorder near-tied keypoints at the top-K cut.
+MIN_IDENTICAL = {"fp32": 0.99, "fp16": 0.90}
+
+
+@dataclass
+class ExportOptions:
+    target: str
+    output: Path
+    checkpoint: Path | None = None
+    input_size: tuple[int, int] | None = None
+    precision: str | None = None
+    max_keypoints: int | None = None
+    nms_radius: int = 4
+    threshold: float = 0.005
+    border: int = 4
+    dense: bool = False
+    force: bool = False
+    parity_images: Path | None = None
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'240x320' -> (240, 320); both must be positive multiples of 8 (the detector's cell)."""
+    try:
+        height, width = (int(part) for part in text.lower().split("x"))
+    except ValueError:
+        raise ToolkitError(f"input size must look like HxW (e.g. 240x320), got {text!r}") from None
+    if height < 16 or width < 16 or height % 8 or width % 8:
+        raise ToolkitError(f"input size {height}x{width} must be at least 16x16 and divisible by 8")
+    return height, width
+
+
+def _check_output_dir(output: Path, force: bool) -> None:
+    if output.exists():
+        if not output.is_dir():
+            raise ToolkitError(f"output {output} exists and is not a directory")
+        if (output / MANIFEST_NAME).exists() and not force:
+            raise ToolkitError(f"{output} already holds an artefact; pass --force to replace it")
+        if any(output.iterdir()) and not force:
+            raise ToolkitError(f"{output} is not empty; pass --force to replace it")
+    ancestor = output.resolve().parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    try:
+        if not ancestor.is_dir():
+            raise NotADirectoryError(ancestor)
+        with tempfile.TemporaryFile(dir=ancestor):  # a real write: permission bits lie to root and on read-only mounts
+            pass
+    except OSError:
+        raise ToolkitError(f"output directory {output} is not writable") from None
+
+
+def _to_fp16(model: onnx.ModelProto) -> onnx.ModelProto:
+    from onnxruntime.transformers.float16 import convert_float_to_float16
+
+    return convert_float_to_float16(model, keep_io_types=True)
+
+
+def _resolve(options: ExportOptions, profile: TargetProfile) -> tuple[tuple[int, int], str, int]:
+    size = options.input_size or profile.default_input_size
+    if size[0] % 8 or size[1] % 8 or min(size) < 16:
+        raise ToolkitError(f"input size {size[0]}x{size[1]} must be at least 16x16 and divisible by 8")
+    precision = options.precision or profile.default_precision
+    if precision not in profile.precisions:
+        raise ToolkitError(f"precision {precision} is not available for {profile.name} (choose from {', '.join(profile.precisions)})")
+    keypoints = options.max_keypoints or profile.default_max_keypoints
+    if not 1 <= keypoints <= size[0] * size[1] // 4:
+        raise ToolkitError(f"--max-keypoints must be between 1 and {size[0] * size[1] // 4} at {size[0]}x{size[1]}")
+    return size, precision, keypoints
+
+
+def export_artefact(options: ExportOptions, log=print) -> Path:
+    """Export, verify and write an artefact; returns its directory. Raises `ToolkitError` on any failure."""
+    profile = load_profile(options.target)
+    (height, width), precision, max_keypoints = _resolve(options, profile)
+    output = Path(options.output)
+    _check_output_dir(output, options.force)
+    if options.checkpoint is None:
+        raise ToolkitError("--checkpoint is required: no trained default model ships with this version")
+    net, info = load_checkpoint(options.checkpoint)
+    set_deform_strategy(net, "native" if profile.deform_strategy == "native" else "torch")
+    torch.manual_seed(0)
+
+    keypoint_module = KeypointGraph(net, height, width, max_keypoints, options.nms_radius, options.threshold, options.border).eval()
+    dense_module = DenseGraph(net).eval()
+    dummy = torch.zeros(1, 1, height, width)
+    log(f"exporting {info.arch} for {profile.name} at {height}x{width}, opset {profile.max_opset}, deform {profile.deform_strategy}")
+    keypoint_export = export_onnx(keypoint_module, dummy, profile.max_opset, KEYPOINT_OUTPUTS)
+    dense_export = export_onnx(dense_module, dummy, profile.max_opset, DENSE_OUTPUTS)
+    deployed = dense_export if options.dense else keypoint_export
+    check_against_profile(deployed.model, profile)
+
+    # On the TX2, FP16 is a TensorRT build flag on the FP32 graph; on the CPU the file itself becomes FP16.
+    onnx_fp16 = precision == "fp16" and profile.runtime.startswith("onnxruntime")
+    keypoint_model = _to_fp16(keypoint_export.model) if onnx_fp16 else keypoint_export.model
+    dense_model = _to_fp16(dense_export.model) if onnx_fp16 else dense_export.model
+
+    paths = images_in(options.parity_images) if options.parity_images else default_parity_paths()
+    images = [prepare_image(path, height, width) for path in paths]
+    parity = measure_parity(keypoint_module, keypoint_model, dense_module, dense_model, images, [p.name for p in paths])
+    lowest_gather = require_non_negative_gathers(keypoint_model, images, profile)
+    required = MIN_IDENTICAL["fp16" if onnx_fp16 else "fp32"]
+    if parity.keypoints_identical < required:
+        raise ToolkitError(
+            f"parity failed: only {parity.keypoints_identical:.1%} of keypoints identical to PyTorch (need {required:.0%})"
+        )
+    final_model = dense_model if options.dense else keypoint_model
+
+    output.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-", dir=output.parent))
+    try:
+        onnx.save(final_model, str(staging / MODEL_NAME))
+        manifest = {
+            "format": ARTEFACT_FORMAT,
+            "target": profile.name,
+            "runtime": profile.runtime,
+            "mode": "dense" if options.dense else "keypoints",
+            "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "toolkit_version": __version__,
+            "precision": precision,
+            "precision_applied": "onnx-fp16-weights" if onnx_fp16 else ("tensorrt-build-flag" if precision == "fp16" else "fp32"),
+            "deform_strategy": profile.deform_strategy,
+            "model": {"arch": info.arch, "config": info.config, "checkpoint": Path(info.path).name,
+                      "checkpoint_sha256": info.sha256, "parameters": sum(p.numel() for p in net.parameters())},
+            "onnx": {"file": MODEL_NAME, "sha256": sha256_file(staging / MODEL_NAME), "opset": profile.max_opset,
+                     "nodes_before_simplify": deployed.nodes_before_simplify,
+                     "nodes_after_simplify": deployed.nodes_after_simplify, "simplifier": deployed.simplifier,
+                     "op_types": op_histogram(final_model)},
+            "input": {"name": "image", "shape": [1, 1, height, width], "dtype": "float32", "layout": "NCHW",
+                      "color": "gray", "normalisation": {"scale": 1.0 / 255.0, "offset": 0.0},
+                      "resize": "cv2.INTER_AREA to the input shape", "resize_policy": "resize"},
+            "outputs": _describe_outputs(options.dense, max_keypoints, height, width, net),
+            "postprocess": {"max_keypoints": max_keypoints, "nms_radius": options.nms_radius,
+                            "detection_threshold": options.threshold, "border": options.border},
+            "parity": {**parity.to_dict(), "required_identical": required, "min_gather_index": lowest_gather},
+        }
+        (staging / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
+        (staging / "README.md").write_text(artefact_readme(manifest, profile))
+        _apply_umask(staging)  # mkdtemp makes a private 0700 directory
+        if output.exists():
+            shutil.rmtree(output)
+        os.replace(staging, output)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
+    return output
+
+
+def _apply_umask(directory: Path) -> None:
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(directory, 0o777 & ~umask)
+
+
+def _describe_outputs(dense: bool, k: int, height: int, width: int, net: torch.nn.Module) -> dict:
+    dim = net.config.descriptor_dim
+    if dense:
+        return {
+            "heatmap": {"shape": [1, 1, height, width], "dtype": "float32", "meaning": "keypoint probability per pixel"},
+            "descriptors_coarse": {"shape": [1, dim, height // 8, width // 8], "dtype": "float32",
+                                   "meaning": "unit-norm descriptor per 8x8 cell"},
+        }
+    return {
+        "keypoints": {"shape": [k, 2], "dtype": "float32", "meaning": "(x, y) input pixels, centres at integers"},
+        "scores": {"shape": [k], "dtype": "float32", "meaning": "keypoint probability after NMS, descending"},
+        "descriptors": {"shape": [k, dim], "dtype": "float32", "meaning": "unit-norm descriptor per keypoint"},
+        "num_valid": {"shape": [1], "dtype": "int32", "meaning": "rows [0, num_valid) score above the threshold"},
+    }

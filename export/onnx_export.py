@@ -1,0 +1,87 @@
+"""Tracing a graph module to ONNX, checking it, and simplifying it.
+
+The TorchScript exporter (``dynamo=False``) is used for every target: the dynamo exporter of torch 2.13
+emits opset >= 18 whatever is asked, and the TX2 (TensorRT 8.0) reads opset <= 13.
+"""
+from __future__ import annotations
+
+import io
+import warnings
+from collections import Counter
+from dataclasses import dataclass
+
+import onnx
+import torch
+from torch import nn
+
+from toolkit.errors import ToolkitError
+
+
+@dataclass
+class OnnxExportResult:
+    model: onnx.ModelProto
+    nodes_before_simplify: int
+    nodes_after_simplify: int
+    simplifier: str
+
+
+def trace_to_onnx(
+    module: nn.Module, image: torch.Tensor, opset: int, output_names: tuple[str, ...]
+) -> onnx.ModelProto:
+    """Trace ``module`` on ``image`` [1, 1, H, W] into an in-memory ONNX model with fixed shapes."""
+    buffer = io.BytesIO()
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")  # tracer warnings about Python ints in shapes: shapes are fixed by design
+        torch.onnx.export(
+            module,
+            (image,),
+            buffer,
+            dynamo=False,
+            opset_version=opset,
+            input_names=["image"],
+            output_names=list(output_names),
+            do_constant_folding=True,
+        )
+    return onnx.load_from_string(buffer.getvalue())
+
+
+def simplify(model: onnx.ModelProto) -> tuple[onnx.ModelProto, str]:
+    """Constant-fold and clean the graph with onnxsim; the result is re-checked by onnxsim itself."""
+    import onnxsim
+
+    simplified, ok = onnxsim.simplify(model)
+    if not ok:
+        raise ToolkitError("onnxsim could not validate the simplified graph against the original")
+    return simplified, f"onnxsim {onnxsim.__version__}"
+
+
+def full_check(model: onnx.ModelProto) -> None:
+    """onnx.checker with shape inference (``full_check``); a failure is an export bug, reported in one line."""
+    try:
+        onnx.checker.check_model(model, full_check=True)
+    except (onnx.checker.ValidationError, onnx.shape_inference.InferenceError) as exc:
+        raise ToolkitError(f"exported graph fails onnx.checker: {str(exc).splitlines()[0]}") from None
+
+
+def export_onnx(
+    module: nn.Module, image: torch.Tensor, opset: int, output_names: tuple[str, ...]
+) -> OnnxExportResult:
+    """Trace, check, simplify and check again. Returns the final model and node counts."""
+    raw = trace_to_onnx(module, image, opset, output_names)
+    full_check(raw)
+    simplified, simplifier = simplify(raw)
+    full_check(simplified)
+    return OnnxExportResult(simplified, len(raw.graph.node), len(simplified.graph.node), simplifier)
+
+
+def op_histogram(model: onnx.ModelProto) -> dict[str, int]:
+    """Node count per op type, sorted by name."""
+    return dict(sorted(Counter(node.op_type for node in model.graph.node).items()))
+
+
+def model_opset(model: onnx.ModelProto) -> int:
+    """The default-domain opset the model declares."""
+    for entry in model.opset_import:
+        if entry.domain in ("", "ai.onnx"):
+            return int(entry.version)
+    raise ToolkitError("exported model declares no default-domain opset")

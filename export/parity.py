@@ -1,0 +1,140 @@
+"""Parity of an exported graph against PyTorch on real images.
+
+Images are prepared exactly as `vo_runtime.FeatureExtractor` prepares frames (gray, INTER_AREA resize,
+scale to [0, 1]), so the figures describe what the runtime will see.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import onnx
+import torch
+from torch import nn
+
+from toolkit.errors import ToolkitError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp")
+# Real images with texture, dark frames and a viewpoint change: two HPatches frames and a LOL low/high pair.
+DEFAULT_PARITY_FILES = (
+    "hpatches_v_dogman/v_dogman/1.ppm",
+    "hpatches_v_dogman/v_dogman/4.ppm",
+    "lowlight_pairs/low/1.png",
+    "lowlight_pairs/high/1.png",
+)
+
+
+@dataclass
+class ParityReport:
+    images: list[str]
+    keypoints_identical: float  # fraction of PyTorch's valid keypoints found at the same pixel by the artefact
+    num_valid_torch: list[int]
+    num_valid_onnx: list[int]
+    scores_max_abs_diff: float
+    descriptors_max_abs_diff: float
+    heatmap_max_abs_diff: float
+    descriptors_coarse_max_abs_diff: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def shared_data_dir() -> Path | None:
+    """``$EDGEFEAT_DATA``, else ``../shared/data`` from the working directory or from the source tree."""
+    candidates = [os.environ.get("EDGEFEAT_DATA", ""), "../shared/data", Path(__file__).resolve().parents[2] / "shared" / "data"]
+    for candidate in candidates:
+        if candidate and Path(candidate).is_dir():
+            return Path(candidate).resolve()
+    return None
+
+
+def default_parity_paths() -> list[Path]:
+    data = shared_data_dir()
+    paths = [data / name for name in DEFAULT_PARITY_FILES] if data else []
+    paths = [path for path in paths if path.is_file()]
+    if not paths:
+        raise ToolkitError("no parity images found (../shared/data or $EDGEFEAT_DATA); pass --parity-images DIR")
+    return paths
+
+
+def images_in(directory: str | Path, limit: int = 4) -> list[Path]:
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise ToolkitError(f"parity image folder not found: {directory}")
+    paths = sorted(p for p in directory.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)[:limit]
+    if not paths:
+        raise ToolkitError(f"no images in {directory}")
+    return paths
+
+
+def prepare_image(path: Path, height: int, width: int) -> np.ndarray:
+    """Read as gray, resize with INTER_AREA, scale to [0, 1]: [1, 1, H, W] float32."""
+    gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if gray is None:
+        raise ToolkitError(f"cannot read parity image {path}")
+    if gray.shape != (height, width):
+        gray = cv2.resize(gray, (width, height), interpolation=cv2.INTER_AREA)
+    return (gray.astype(np.float32) / 255.0)[None, None]
+
+
+def _session(model: onnx.ModelProto):
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    try:
+        return ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises several unrelated types
+        raise ToolkitError(f"onnxruntime cannot load the exported graph: {str(exc).splitlines()[0]}") from None
+
+
+def _pixel_keys(keypoints: np.ndarray) -> dict[tuple[int, int], int]:
+    return {(int(round(x)), int(round(y))): i for i, (x, y) in enumerate(keypoints)}
+
+
+def measure_parity(
+    keypoint_module: nn.Module,
+    keypoint_model: onnx.ModelProto,
+    dense_module: nn.Module,
+    dense_model: onnx.ModelProto,
+    images: list[np.ndarray],
+    names: list[str],
+) -> ParityReport:
+    """Run PyTorch and onnxruntime side by side on ``images`` and compare heads and keypoints."""
+    keypoint_session, dense_session = _session(keypoint_model), _session(dense_model)
+    found = total = 0
+    valid_torch: list[int] = []
+    valid_onnx: list[int] = []
+    score_diff = desc_diff = heat_diff = coarse_diff = 0.0
+    with torch.no_grad():
+        for image in images:
+            reference = [t.numpy() for t in keypoint_module(torch.from_numpy(image))]
+            exported = keypoint_session.run(None, {"image": image})
+            n_ref, n_exp = int(reference[3][0]), int(exported[3][0])
+            valid_torch.append(n_ref)
+            valid_onnx.append(n_exp)
+            ref_keys, exp_keys = _pixel_keys(reference[0][:n_ref]), _pixel_keys(exported[0][:n_exp])
+            common = [(ref_keys[k], exp_keys[k]) for k in ref_keys if k in exp_keys]
+            found += len(common)
+            total += len(ref_keys)
+            if common:
+                ri, ei = map(list, zip(*common))
+                score_diff = max(score_diff, float(np.abs(reference[1][ri] - exported[1][ei]).max()))
+                desc_diff = max(desc_diff, float(np.abs(reference[2][ri] - exported[2][ei]).max()))
+            dense_ref = [t.numpy() for t in dense_module(torch.from_numpy(image))]
+            dense_exp = dense_session.run(None, {"image": image})
+            heat_diff = max(heat_diff, float(np.abs(dense_ref[0] - dense_exp[0]).max()))
+            coarse_diff = max(coarse_diff, float(np.abs(dense_ref[1] - dense_exp[1]).max()))
+    return ParityReport(
+        images=names,
+        keypoints_identical=found / total if total else 1.0,
+        num_valid_torch=valid_torch,
+        num_valid_onnx=valid_onnx,
+        scores_max_abs_diff=score_diff,
+        descriptors_max_abs_diff=desc_diff,
+        heatmap_max_abs_diff=heat_diff,
+        descriptors_coarse_max_abs_diff=coarse_diff,
+    )

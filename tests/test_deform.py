@@ -1,0 +1,117 @@
+"""The deformable conv three ways (PyTorch autograd, portable ONNX, native ONNX DeformConv) give one answer."""
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+
+from models.deform import DeformableConv, deform_conv2d, set_deform_strategy
+
+torch.set_num_threads(1)
+
+
+def reference_deform_conv(x, offset, weight, bias, mask):
+    """Direct loop over outputs and taps (no shared code with the implementation): stride 1, pad 1, 3x3."""
+    batch, channels, height, width = x.shape
+    out = np.zeros((batch, weight.shape[0], height, width))
+
+    def sample(image, y, x_):
+        if y <= -1 or y >= height or x_ <= -1 or x_ >= width:
+            return 0.0
+        y0, x0 = int(np.floor(y)), int(np.floor(x_))
+        total = 0.0
+        for yy, wy in ((y0, 1 - (y - y0)), (y0 + 1, y - y0)):
+            for xx, wx in ((x0, 1 - (x_ - x0)), (x0 + 1, x_ - x0)):
+                if 0 <= yy < height and 0 <= xx < width:
+                    total += wy * wx * image[yy, xx]
+        return total
+
+    for b in range(batch):
+        for i in range(height):
+            for j in range(width):
+                for k in range(9):
+                    ky, kx = divmod(k, 3)
+                    py = i - 1 + ky + offset[b, 2 * k, i, j]
+                    px = j - 1 + kx + offset[b, 2 * k + 1, i, j]
+                    scale = 1.0 if mask is None else mask[b, k, i, j]
+                    for c in range(channels):
+                        out[b, :, i, j] += weight[:, c, ky, kx] * sample(x[b, c], py, px) * scale
+        out[b] += bias[:, None, None]
+    return out
+
+
+def random_case(seed: int, batch=2, channels=3, height=6, width=7, out_channels=4):
+    generator = torch.Generator().manual_seed(seed)
+    x = torch.randn(batch, channels, height, width, generator=generator)
+    # Large and fractional offsets: many taps land between pixels, beyond the border, or far outside.
+    offset = torch.randn(batch, 18, height, width, generator=generator) * 3.0
+    offset[:, ::5] += 12.0
+    mask = torch.rand(batch, 9, height, width, generator=generator)
+    weight = torch.randn(out_channels, channels, 3, 3, generator=generator)
+    bias = torch.randn(out_channels, generator=generator)
+    return x, offset, weight, bias, mask
+
+
+@pytest.mark.parametrize("modulated", [True, False])
+def test_torch_matches_direct_reference(modulated):
+    x, offset, weight, bias, mask = random_case(0)
+    mask = mask if modulated else None
+    expected = reference_deform_conv(x.numpy(), offset.numpy(), weight.numpy(), bias.numpy(), None if mask is None else mask.numpy())
+    got = deform_conv2d(x, offset, weight, bias, mask).numpy()
+    outside = (offset.abs() > 6).float().mean().item()
+    assert outside > 0.1, "the case must exercise samples outside the image"
+    assert np.abs(got - expected).max() <= 1e-4
+
+
+def test_torch_path_has_gradients_for_every_input():
+    x, offset, weight, bias, mask = (t.double() for t in random_case(1, batch=1, channels=2, height=4, width=5, out_channels=2))
+    offset = offset + 0.37  # keep samples off integer positions, where bilinear sampling has kinks
+    inputs = tuple(t.clone().requires_grad_(True) for t in (x, offset, weight, bias, mask))
+    assert torch.autograd.gradcheck(lambda *a: deform_conv2d(*a), inputs, eps=1e-6, atol=1e-5)
+
+
+def _export(module, x, opset):
+    buffer = io.BytesIO()
+    torch.onnx.export(module, (x,), buffer, dynamo=False, opset_version=opset, input_names=["x"])
+    return onnx.load_from_string(buffer.getvalue())
+
+
+def _run(model, x):
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    return session.run(None, {"x": x.numpy()})[0]
+
+
+@pytest.mark.parametrize("modulated", [True, False])
+def test_training_portable_and_native_paths_agree(modulated):
+    torch.manual_seed(2)
+    layer = DeformableConv(8, 16, modulated=modulated).eval()
+    torch.nn.init.normal_(layer.offset_pw.weight, std=1.5)  # offsets of several pixels, fractional
+    torch.nn.init.normal_(layer.offset_pw.bias, std=4.0)
+    x = torch.randn(1, 8, 12, 16)
+    with torch.no_grad():
+        offsets, _ = layer.offsets_and_mask(x)
+        training = layer(x).numpy()
+    assert offsets.abs().max() > 8 and (offsets.frac().abs() > 0.1).float().mean() > 0.5
+
+    portable = _export(set_deform_strategy(layer, "torch"), x, 13)
+    native = _export(set_deform_strategy(layer, "native"), x, 19)
+    set_deform_strategy(layer, "torch")
+    portable_ops = {node.op_type for node in portable.graph.node}
+    native_ops = {node.op_type for node in native.graph.node}
+    assert portable.opset_import[0].version == 13
+    assert not portable_ops & {"DeformConv", "GridSample", "GatherND"}
+    assert "DeformConv" in native_ops
+
+    assert np.abs(_run(portable, x) - training).max() <= 1e-4
+    assert np.abs(_run(native, x) - training).max() <= 1e-4
+
+
+def test_untrained_layer_is_a_plain_convolution():
+    layer = DeformableConv(4, 6, modulated=False).eval()
+    x = torch.randn(1, 4, 9, 9)
+    with torch.no_grad():
+        assert torch.allclose(layer(x), layer.conv(x), atol=1e-5)

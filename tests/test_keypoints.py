@@ -1,0 +1,54 @@
+"""Post-processing shared by PyTorch and the exported graph, on cases with a known answer."""
+from __future__ import annotations
+
+import torch
+
+from models.keypoints import extract_keypoints, heatmap_from_logits, max_pool_nms, sample_descriptors, top_k_keypoints
+
+
+def test_heatmap_places_each_cell_channel_at_its_pixel():
+    logits = torch.full((1, 65, 3, 4), -10.0)
+    logits[:, 64] = 10.0  # dustbin everywhere ...
+    logits[0, 64, 1, 2] = -10.0
+    logits[0, 8 * 5 + 3, 1, 2] = 10.0  # ... except cell (1, 2), which fires at row 5, column 3 inside it
+    heatmap = heatmap_from_logits(logits)
+    assert heatmap.shape == (1, 1, 24, 32)
+    peak = int(torch.argmax(heatmap))
+    assert divmod(peak, 32) == (1 * 8 + 5, 2 * 8 + 3)
+
+
+def test_nms_keeps_local_maxima_only():
+    heat = torch.zeros(1, 1, 20, 20)
+    heat[0, 0, 5, 5], heat[0, 0, 6, 6], heat[0, 0, 15, 15] = 0.9, 0.5, 0.4
+    kept = max_pool_nms(heat, radius=2)[0, 0]
+    assert kept[5, 5] == 0.9 and kept[6, 6] == 0 and kept[15, 15] == 0.4
+
+
+def test_top_k_returns_x_then_y_best_first():
+    scores = torch.zeros(10, 13)
+    scores[2, 11], scores[7, 4] = 0.8, 0.6
+    keypoints, values = top_k_keypoints(scores, 2)
+    assert keypoints.tolist() == [[11.0, 2.0], [4.0, 7.0]]
+    assert values.tolist() == [0.800000011920929, 0.6000000238418579]
+
+
+def test_descriptor_sampling_hits_cell_centres_and_interpolates():
+    coarse = torch.nn.functional.normalize(torch.randn(16, 3, 4), dim=0)
+    # Cell (row 1, col 2) is centred on pixel (x, y) = (2*8 + 3.5, 1*8 + 3.5).
+    at_centre = sample_descriptors(coarse, torch.tensor([[19.5, 11.5]]))
+    assert torch.allclose(at_centre[0], coarse[:, 1, 2], atol=1e-6)
+    halfway = sample_descriptors(coarse, torch.tensor([[23.5, 11.5]]))
+    expected = torch.nn.functional.normalize(coarse[:, 1, 2] + coarse[:, 1, 3], dim=0)
+    assert torch.allclose(halfway[0], expected, atol=1e-6)
+
+
+def test_extract_keypoints_counts_valid_rows_and_drops_the_border():
+    logits = torch.full((1, 65, 4, 4), -10.0)
+    logits[:, 64] = 10.0
+    logits[0, 64, 0, 0], logits[0, 0, 0, 0] = -10.0, 10.0  # pixel (0, 0): inside the 4-px border
+    logits[0, 64, 2, 1], logits[0, 8 * 3 + 4, 2, 1] = -10.0, 10.0  # pixel (x=12, y=19)
+    descriptors = torch.nn.functional.normalize(torch.randn(1, 32, 4, 4), dim=1)
+    out = extract_keypoints(logits, descriptors, max_keypoints=5, nms_radius=2, threshold=0.5, border=4)
+    assert int(out["num_valid"][0]) == 1
+    assert out["keypoints"][0].tolist() == [12.0, 19.0]
+    assert out["descriptors"].shape == (5, 32)
