@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -93,8 +94,9 @@ def load_checkpoint(path: str | Path) -> tuple[nn.Module, CheckpointInfo]:
     if path.suffix in (".pth", ".pt"):
         try:
             model = load_superpoint_v1(path)
-        except (ValueError, RuntimeError, OSError, EOFError) as exc:
-            raise CheckpointError(f"cannot load {path}: {str(exc).splitlines()[0]}") from None
+        except (ValueError, RuntimeError, OSError, EOFError, pickle.UnpicklingError) as exc:
+            # UnpicklingError: weights_only=True met something other than tensors and containers.
+            raise CheckpointError(f"cannot load {path}: {str(exc).splitlines()[0][:200]}") from None
         return model, CheckpointInfo(str(path), digest, "superpoint", model.config.to_dict(), {"source": "superpoint_v1"})
     tensors, header = _read_safetensors(path)
     if header.get("format") != CHECKPOINT_FORMAT:
