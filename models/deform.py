@@ -78,7 +78,7 @@ def deform_conv2d(
     if mask is not None:
         weights = weights * mask.reshape(1, batch, taps, out_h, out_w)
     batch_start = (torch.arange(batch, dtype=dtype, device=device) * (padded_h * padded_w)).view(1, batch, 1, 1, 1)
-    flat_index = (rows * padded_w + cols + batch_start).reshape(-1).to(torch.int64)
+    flat_index = (rows * padded_w + cols + batch_start).reshape(-1).to(torch.int32)  # TensorRT has no int64 tensors
 
     pixels = F.pad(x, (1, 1, 1, 1)).permute(0, 2, 3, 1).reshape(batch * padded_h * padded_w, channels)
     corners = torch.index_select(pixels, 0, flat_index).reshape(4, batch, taps, locations, channels)
@@ -148,6 +148,12 @@ class DeformableConv(nn.Module):
         nn.init.zeros_(self.offset_pw.weight)
         nn.init.zeros_(self.offset_pw.bias)
         self.conv = nn.Conv2d(in_channels, out_channels, 3, padding=1)
+        # Tracing hook for structured pruning (torch-pruning's DepGraph), off by default. DepGraph follows
+        # autograd through every op, and the gather-based sampler is an op soup it cannot map to channels
+        # (it never returns). With ``trace_as_plain_conv`` set, forward is just ``self.conv(x)``: the same
+        # Cin -> Cout coupling, so the layer's custom pruner (toolkit.compression.prune) can shrink its
+        # kernel and the offset branch's inputs together while the 2*9 offset / 9 mask outputs stay whole.
+        self.trace_as_plain_conv = False
 
     def offsets_and_mask(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         """x [B, C, H, W] -> offsets [B, 18, H, W], mask [B, 9, H, W] or None."""
@@ -157,6 +163,8 @@ class DeformableConv(nn.Module):
         return branch[:, :18], torch.sigmoid(branch[:, 18:])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.trace_as_plain_conv:  # pruning trace only, see __init__
+            return self.conv(x)
         offset, mask = self.offsets_and_mask(x)
         if self.strategy == "native":
             return native_deform_conv2d(x, offset, self.conv.weight, self.conv.bias, mask)

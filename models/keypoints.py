@@ -70,7 +70,7 @@ def sample_descriptors(descriptors: torch.Tensor, keypoints: torch.Tensor) -> to
     table = descriptors.reshape(dim, height * width).transpose(0, 1)  # [h*w, D]
     corners = torch.stack([v0 * width + u0, v0 * width + u1, v1 * width + u0, v1 * width + u1])
     weights = torch.stack([(1 - wv) * (1 - wu), (1 - wv) * wu, wv * (1 - wu), wv * wu])  # [4, K]
-    gathered = torch.index_select(table, 0, corners.reshape(-1).to(torch.int64)).reshape(4, -1, dim)
+    gathered = torch.index_select(table, 0, corners.reshape(-1).to(torch.int32)).reshape(4, -1, dim)
     sampled = (gathered * weights[:, :, None]).sum(0)
     return F.normalize(sampled, p=2.0, dim=1)
 
@@ -99,7 +99,8 @@ def extract_keypoints(
         border_weights = border_mask(height, width, border, heatmap)
     scores = max_pool_nms(heatmap, nms_radius)[0, 0] * border_weights
     keypoints, values = top_k_keypoints(scores, max_keypoints)
-    num_valid = (values > threshold).to(torch.int32).sum().reshape(1)
+    # Counted in float (exact below 2^24): an integer ReduceSum exports through int64, which TensorRT 8 lacks.
+    num_valid = (values > threshold).to(values.dtype).sum().to(torch.int32).reshape(1)
     return {
         "keypoints": keypoints,
         "scores": values,

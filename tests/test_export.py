@@ -72,6 +72,12 @@ def test_artefact_verifies_and_matches_pytorch(artefacts, checkpoint, target):
     shapes = {o.name: [d.dim_value for d in o.type.tensor_type.shape.dim] for o in model.graph.output}
     k = manifest["postprocess"]["max_keypoints"]
     assert shapes == {"keypoints": [k, 2], "scores": [k], "descriptors": [k, 256], "num_valid": [1]}
+    dtypes = {o.name: onnx.TensorProto.DataType.Name(o.type.tensor_type.elem_type) for o in model.graph.output}
+    onnx_names = {"float32": "FLOAT", "int32": "INT32"}
+    assert dtypes == {name: onnx_names[spec["dtype"]] for name, spec in manifest["outputs"].items()}
+    if target == "tx2":  # TensorRT 8 has no int64 tensors: every cast in the graph stays 32-bit
+        casts = [a.i for n in model.graph.node if n.op_type == "Cast" for a in n.attribute if a.name == "to"]
+        assert onnx.TensorProto.INT64 not in casts
 
 
 def test_runtime_extracts_from_the_artefact_on_a_real_image(artefacts, shared_data):
