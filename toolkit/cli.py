@@ -16,6 +16,7 @@ from vo_runtime.errors import VORuntimeError
 # Order is the order shown by `toolkit --help`.
 COMMAND_MODULES: list[str] = [
     "toolkit.cmd_export",
+    "toolkit.cmd_eval",
 ]
 
 

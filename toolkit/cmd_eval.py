@@ -1,0 +1,134 @@
+"""`toolkit eval`: HPatches-protocol detector/descriptor metrics for any model, and for registered pairs."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from toolkit import __version__
+from toolkit.errors import ToolkitError
+from toolkit.evaluation.datasets import ImagePair, parse_size, read_hpatches, read_registered_pairs
+from toolkit.evaluation.detectors import DetectorConfig, load_detector
+from toolkit.evaluation.report import check_output_dir, format_terminal_table, write_report
+from toolkit.evaluation.runner import EvalConfig, ImageCache, evaluate_model, group_summaries, pair_records
+
+MODEL_HELP = ("model to evaluate, repeatable: orb, sift, an artefact directory, a checkpoint "
+              "(.safetensors/.pth), superpoint:PATH; prefix LABEL= to name the row (default: orb sift)")
+
+HPATCHES_EPILOG = """\
+examples:
+  toolkit eval hpatches --data ../shared/data/hpatches_v_dogman --model orb --model sift -o reports/dogman
+  toolkit eval hpatches --data hpatches-sequences-release --model fp32=export/x86 --model int8=export/x86_int8
+  toolkit eval hpatches --data DIR --model sift --size native --max-keypoints 500
+
+Each sequence folder holds 1.ppm..6.ppm and H_1_k (image 1 -> k). i_ and v_ sequences are reported apart
+and together. Metrics (definitions: docs/evaluation.md): repeatability and MLE at 3 px, descriptor NN mAP,
+matching score, homography accuracy at corner error 1/3/5 px after RANSAC on mutual nearest neighbours.
+-o DIR writes results.json, results.md and matches_<model>.png.
+"""
+
+PAIRS_EPILOG = """\
+examples:
+  toolkit eval pairs --data ../shared/data/lowlight_pairs --model orb --model sift -o reports/lowlight
+  toolkit eval pairs --data DIR --first day --second night --model export/x86 --size native
+
+Layout: FIRST/<n>.png and SECOND/<n>.png show the same view; HOMOGRAPHIES/<n>.txt (3x3, FIRST -> SECOND)
+is optional and the identity when absent (pixel-registered pairs such as LOL low/normal light).
+"""
+
+
+def _add_common_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", required=True, type=Path, help="dataset directory")
+    parser.add_argument("--model", action="extend", nargs="+", default=None, metavar="M", help=MODEL_HELP)
+    parser.add_argument("--size", default="240x320", help="HxW to resize every image to, or native (default 240x320)")
+    parser.add_argument("--max-keypoints", type=int, default=1000, help="keypoint budget per image (default 1000)")
+    parser.add_argument("--nms", type=int, default=4, help="NMS radius in px for networks run in Python (default 4)")
+    parser.add_argument("--threshold", type=float, default=3.0,
+                        help="correctness distance in px for repeatability, mAP and matching score (default 3)")
+    parser.add_argument("--normalise", choices=("none", "minmax"), default="none",
+                        help="per-image contrast stretch before detection, for all models alike (default none)")
+    parser.add_argument("-o", "--output", type=Path, default=None, help="report directory to write (optional)")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "eval", help="evaluate models with the HPatches protocol or on registered image pairs",
+        description="Evaluate keypoint models (checkpoints, exported artefacts, SuperPoint, ORB, SIFT) through "
+                    "one code path, with SuperPoint's detector and descriptor metrics.",
+        epilog="examples:\n  toolkit eval hpatches --data ../shared/data/hpatches_v_dogman --model orb sift\n"
+               "  toolkit eval pairs --data ../shared/data/lowlight_pairs --model orb -o reports/lowlight",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="eval_command", metavar="<dataset>")
+    sub.required = True
+    hpatches = sub.add_parser("hpatches", help="HPatches-layout sequences (1.ppm..6.ppm, H_1_k)",
+                              description="Evaluate models on HPatches-layout sequence folders.",
+                              epilog=HPATCHES_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    _add_common_options(hpatches)
+    hpatches.set_defaults(func=run)
+    pairs = sub.add_parser("pairs", help="registered pairs (low/<n>.png vs high/<n>.png, optional H)",
+                           description="Evaluate models on registered image pairs with an optional homography.",
+                           epilog=PAIRS_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    _add_common_options(pairs)
+    pairs.add_argument("--first", default="low", help="folder of the first images (default low)")
+    pairs.add_argument("--second", default="high", help="folder of the second images (default high)")
+    pairs.add_argument("--homographies", default="homographies",
+                       help="folder of optional <n>.txt homographies first -> second (default homographies)")
+    pairs.set_defaults(func=run)
+
+
+def _read_pairs(args: argparse.Namespace) -> list[ImagePair]:
+    if args.eval_command == "hpatches":
+        return read_hpatches(args.data)
+    return read_registered_pairs(args.data, args.first, args.second, args.homographies)
+
+
+def _unique_labels(labels: list[str]) -> list[str]:
+    seen: dict[str, int] = {}
+    unique = []
+    for label in labels:
+        seen[label] = seen.get(label, 0) + 1
+        unique.append(label if seen[label] == 1 else f"{label}#{seen[label]}")
+    return unique
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.max_keypoints < 1:
+        raise ToolkitError("--max-keypoints must be at least 1")
+    if args.nms < 0 or args.threshold <= 0:
+        raise ToolkitError("--nms must be >= 0 and --threshold > 0")
+    config = EvalConfig(size=parse_size(args.size), correct_threshold=args.threshold, normalise=args.normalise)
+    detector_config = DetectorConfig(max_keypoints=args.max_keypoints, nms_radius=args.nms)
+    if args.output is not None:
+        check_output_dir(args.output)
+    pairs = _read_pairs(args)
+    # Load every model before the first pair, so a bad spec fails in a second rather than after a long run.
+    detectors = [load_detector(spec, detector_config) for spec in (args.model or ["orb", "sift"])]
+    for detector, label in zip(detectors, _unique_labels([d.label for d in detectors])):
+        detector.label = label
+    images = ImageCache(config.size, config.normalise)
+    models: list[dict[str, Any]] = []
+    examples = {}
+    for detector in detectors:
+        result = evaluate_model(detector, pairs, config, images)
+        models.append({"label": result.label, "kind": result.kind, "settings": result.settings,
+                       "summary": group_summaries(result), "pairs": pair_records(result)})
+        if result.example is not None:
+            examples[result.label] = result.example
+    report = {
+        "command": args.eval_command,
+        "data": str(args.data.resolve()),
+        "toolkit_version": __version__,
+        "protocol": {"size": list(config.size) if config.size else None, "max_keypoints": args.max_keypoints,
+                     "nms_radius": args.nms, "correct_threshold": config.correct_threshold,
+                     "ransac_threshold": config.ransac_threshold, "normalise": config.normalise,
+                     "homography_epsilons_px": [1, 3, 5],
+                     "matcher": "mutual nearest neighbour (L2 for float, Hamming for binary descriptors)"},
+        "models": models,
+    }
+    print(format_terminal_table(report))
+    if args.output is not None:
+        write_report(args.output, report, examples)
+        print(f"report written to {args.output}", file=sys.stderr)
+    return 0

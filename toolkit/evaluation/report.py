@@ -1,0 +1,148 @@
+"""Report outputs of `toolkit eval`: terminal table, JSON, markdown and a PNG of matches per model.
+
+A report directory holds ``results.json``, ``results.md`` and ``matches_<model>.png``. It is written into a
+temporary directory beside the target and renamed into place, so a crash never leaves half a report.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from toolkit.errors import ToolkitError
+from toolkit.evaluation.metrics import warp_points
+from toolkit.evaluation.runner import PairExample
+
+REPORT_JSON = "results.json"
+REPORT_MARKDOWN = "results.md"
+
+# (key in a summary, column header, number format)
+COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("num_pairs", "pairs", "{:d}"),
+    ("num_keypoints", "kpts", "{:.0f}"),
+    ("repeatability", "rep", "{:.3f}"),
+    ("localisation_error", "MLE px", "{:.3f}"),
+    ("nn_map", "NN mAP", "{:.3f}"),
+    ("matching_score", "M.score", "{:.3f}"),
+    ("homography_1px", "H e=1", "{:.3f}"),
+    ("homography_3px", "H e=3", "{:.3f}"),
+    ("homography_5px", "H e=5", "{:.3f}"),
+)
+
+
+def table_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """Header and string rows (one per model and group) of a report dict."""
+    header = ["model", "set"] + [title for _, title, _ in COLUMNS]
+    rows = []
+    for model in report["models"]:
+        for group, summary in model["summary"].items():
+            cells = [model["label"], group]
+            for key, _, fmt in COLUMNS:
+                value = summary.get(key)
+                cells.append("-" if value is None else fmt.format(value))
+            rows.append(cells)
+    return header, rows
+
+
+def format_terminal_table(report: dict[str, Any]) -> str:
+    """A fixed-width table for the terminal."""
+    header, rows = table_rows(report)
+    widths = [max(len(line[i]) for line in [header] + rows) for i in range(len(header))]
+    lines = ["  ".join(cell.ljust(w) if i < 2 else cell.rjust(w) for i, (cell, w) in enumerate(zip(line, widths)))
+             for line in [header] + rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def format_markdown(report: dict[str, Any]) -> str:
+    """A markdown section: the conditions, then one table row per model and group."""
+    protocol = report["protocol"]
+    size = "native" if protocol["size"] is None else "x".join(str(v) for v in protocol["size"])
+    header, rows = table_rows(report)
+    lines = [
+        f"### `toolkit eval {report['command']}` on `{Path(report['data']).name}`",
+        "",
+        f"Size {size}, at most {protocol['max_keypoints']} keypoints, NMS radius {protocol['nms_radius']} "
+        f"(networks run in Python), correctness threshold {protocol['correct_threshold']:g} px, RANSAC "
+        f"threshold {protocol['ransac_threshold']:g} px, contrast normalisation {protocol['normalise']}. "
+        "Definitions: docs/evaluation.md.",
+        "",
+        "| " + " | ".join(header) + " |",
+        "|" + "|".join("---" for _ in header) + "|",
+    ]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines) + "\n"
+
+
+def safe_file_stem(label: str) -> str:
+    """A label turned into a file-name part: letters, digits, ``.-_`` only."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", label).strip("_") or "model"
+
+
+def plot_matches(example: PairExample, path: Path, label: str, threshold: float = 3.0) -> None:
+    """Side-by-side PNG of one pair's mutual-NN matches: green within ``threshold`` px of the truth, red not."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    image_a, image_b = example.image_a, example.image_b
+    height = max(image_a.shape[0], image_b.shape[0])
+    canvas = np.zeros((height, image_a.shape[1] + image_b.shape[1]), dtype=np.uint8)
+    canvas[: image_a.shape[0], : image_a.shape[1]] = image_a
+    canvas[: image_b.shape[0], image_a.shape[1]:] = image_b
+    offset = image_a.shape[1]
+    points_a = example.detection_a.keypoints.astype(np.float64)
+    points_b = example.detection_b.keypoints.astype(np.float64)
+    matched_a, matched_b = points_a[example.matches[:, 0]], points_b[example.matches[:, 1]]
+    correct = np.linalg.norm(warp_points(matched_a, example.homography) - matched_b, axis=1) <= threshold
+
+    figure = Figure(figsize=(canvas.shape[1] / 100, canvas.shape[0] / 100 + 0.4), dpi=100)
+    FigureCanvasAgg(figure)
+    axes = figure.add_axes((0, 0, 1, canvas.shape[0] / (canvas.shape[0] + 40)))
+    axes.imshow(canvas, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+    axes.scatter(points_a[:, 0], points_a[:, 1], s=2, c="yellow", linewidths=0)
+    axes.scatter(points_b[:, 0] + offset, points_b[:, 1], s=2, c="yellow", linewidths=0)
+    for (xa, ya), (xb, yb), ok in zip(matched_a, matched_b, correct):
+        axes.plot([xa, xb + offset], [ya, yb], color="lime" if ok else "red", linewidth=0.5, alpha=0.8)
+    axes.set_axis_off()
+    figure.suptitle(f"{label}  {example.name}: {int(correct.sum())}/{len(correct)} mutual-NN matches within "
+                    f"{threshold:g} px", fontsize=9, y=0.995)
+    figure.savefig(path, dpi=100)
+
+
+def check_output_dir(path: Path) -> None:
+    """Refuse a target that is a file or a non-empty directory that is not a previous report."""
+    if path.is_file():
+        raise ToolkitError(f"output {path} is a file; give a directory name for the report")
+    if path.is_dir() and any(path.iterdir()) and not (path / REPORT_JSON).is_file():
+        raise ToolkitError(f"output {path} is a non-empty directory that is not an eval report; refusing to overwrite")
+    if not path.parent.resolve().is_dir():
+        raise ToolkitError(f"output parent directory not found: {path.parent}")
+
+
+def write_report(path: Path, report: dict[str, Any], examples: dict[str, PairExample]) -> None:
+    """Write results.json, results.md and the match PNGs into a temp dir beside ``path``, then swap it in."""
+    check_output_dir(path)
+    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent.resolve()))
+    try:
+        (staging / REPORT_JSON).write_text(json.dumps(report, indent=2) + "\n")
+        (staging / REPORT_MARKDOWN).write_text(format_markdown(report))
+        for label, example in examples.items():
+            plot_matches(example, staging / f"matches_{safe_file_stem(label)}.png", label,
+                         report["protocol"]["correct_threshold"])
+        os.chmod(staging, 0o755)
+        retired = None
+        if path.exists():
+            retired = Path(tempfile.mkdtemp(prefix=f".{path.name}.old.", dir=path.parent.resolve()))
+            os.rename(path, retired / path.name)
+        os.rename(staging, path)
+        if retired is not None:
+            shutil.rmtree(retired, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise

@@ -1,0 +1,161 @@
+"""Run detectors over image pairs and aggregate the per-pair metrics into the report's numbers."""
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+from tqdm import tqdm
+
+from toolkit.evaluation.datasets import ImagePair, load_gray, resize_with_matrix, scale_homography
+from toolkit.evaluation.detectors import Detection, Detector
+from toolkit.evaluation.metrics import PairMetrics, evaluate_detections
+
+CORNER_THRESHOLDS: tuple[int, ...] = (1, 3, 5)
+
+
+@dataclass
+class EvalConfig:
+    """Protocol settings shared by all models of one run."""
+
+    size: tuple[int, int] | None = (240, 320)   # (height, width); None keeps native size
+    correct_threshold: float = 3.0               # px, repeatability / mAP / matching score
+    ransac_threshold: float = 3.0                # px, reprojection threshold of RANSAC
+    normalise: str = "none"                      # "minmax": stretch each image to 0..255 before detection
+
+
+@dataclass
+class PairExample:
+    """One pair's images, detections and mutual-NN matches, kept for the PNG of matches."""
+
+    name: str
+    image_a: np.ndarray
+    image_b: np.ndarray
+    detection_a: Detection
+    detection_b: Detection
+    matches: np.ndarray
+    homography: np.ndarray
+
+
+@dataclass
+class ModelResult:
+    """Per-pair metrics of one detector plus its settings and the example pair."""
+
+    label: str
+    kind: str
+    settings: dict[str, Any]
+    pairs: dict[str, tuple[str, PairMetrics]] = field(default_factory=dict)   # name -> (group, metrics)
+    example: PairExample | None = None
+
+
+class RecentCache:
+    """The ``capacity`` most recently used values by key. Pairs come sequence by sequence, so a small cache
+    serves the HPatches reference image to its five pairs without holding a whole dataset in memory."""
+
+    def __init__(self, capacity: int = 8) -> None:
+        self.capacity = capacity
+        self._values: OrderedDict[str, Any] = OrderedDict()
+
+    def get(self, key: str, make: Callable[[], Any]) -> Any:
+        if key in self._values:
+            self._values.move_to_end(key)
+        else:
+            self._values[key] = make()
+            if len(self._values) > self.capacity:
+                self._values.popitem(last=False)
+        return self._values[key]
+
+
+class ImageCache:
+    """Resized (and optionally contrast-stretched) gray images by path, read through a `RecentCache`."""
+
+    def __init__(self, size: tuple[int, int] | None, normalise: str = "none") -> None:
+        self.size = size
+        self.normalise = normalise
+        self._images = RecentCache()
+
+    def _load(self, path) -> tuple[np.ndarray, np.ndarray]:
+        image, scale = resize_with_matrix(load_gray(path), self.size)
+        if self.normalise == "minmax":
+            image = stretch_contrast(image)
+        return image, scale
+
+    def get(self, path) -> tuple[np.ndarray, np.ndarray]:
+        """(image HxW uint8, S 3x3 mapping original to resized pixels)."""
+        return self._images.get(str(path), lambda: self._load(path))
+
+
+def stretch_contrast(image: np.ndarray) -> np.ndarray:
+    """Min-max stretch of an HxW uint8 image to 0..255 (a flat image stays as it is)."""
+    low, high = int(image.min()), int(image.max())
+    if high <= low:
+        return image
+    return np.round((image.astype(np.float32) - low) * (255.0 / (high - low))).astype(np.uint8)
+
+
+def evaluate_model(detector: Detector, pairs: list[ImagePair], config: EvalConfig, images: ImageCache,
+                   example_index: int = 0) -> ModelResult:
+    """Detect on both images of every pair (a progress bar on stderr) and compute each pair's metrics."""
+    result = ModelResult(detector.label, detector.kind, dict(detector.settings))
+    detections = RecentCache()
+    for index, pair in enumerate(tqdm(pairs, desc=f"eval {detector.label}", unit="pair", leave=False)):
+        image_a, scale_a = images.get(pair.path_a)
+        image_b, scale_b = images.get(pair.path_b)
+        detection_a: Detection = detections.get(str(pair.path_a), lambda: detector(image_a))
+        detection_b: Detection = detections.get(str(pair.path_b), lambda: detector(image_b))
+        homography = scale_homography(pair.homography, scale_a, scale_b)
+        metrics, matches = evaluate_detections(
+            detection_a.keypoints, detection_a.descriptors, detection_b.keypoints, detection_b.descriptors,
+            homography, image_a.shape, image_b.shape, config.correct_threshold, config.ransac_threshold)
+        result.pairs[pair.name] = (pair.group, metrics)
+        if index == example_index:
+            result.example = PairExample(pair.name, image_a, image_b, detection_a, detection_b, matches, homography)
+    return result
+
+
+def _finite_mean(values: list[float]) -> float | None:
+    finite = [v for v in values if math.isfinite(v)]
+    return float(np.mean(finite)) if finite else None
+
+
+def summarise(metrics: list[PairMetrics]) -> dict[str, Any]:
+    """Means over pairs; homography accuracy is the fraction of pairs with corner error <= epsilon.
+
+    MLE averages only pairs where it is defined (some keypoint repeated); ``None`` if none is.
+    """
+    if not metrics:
+        return {"num_pairs": 0}
+    summary: dict[str, Any] = {
+        "num_pairs": len(metrics),
+        "num_keypoints": float(np.mean([m.num_keypoints for m in metrics])),
+        "repeatability": float(np.mean([m.repeatability for m in metrics])),
+        "localisation_error": _finite_mean([m.localisation_error for m in metrics]),
+        "nn_map": float(np.mean([m.nn_map for m in metrics])),
+        "matching_score": float(np.mean([m.matching_score for m in metrics])),
+    }
+    for epsilon in CORNER_THRESHOLDS:
+        summary[f"homography_{epsilon}px"] = float(np.mean([m.corner_error <= epsilon for m in metrics]))
+    return summary
+
+
+def group_summaries(result: ModelResult) -> dict[str, dict[str, Any]]:
+    """Summaries for ``all`` and each HPatches group present (``i``, ``v``, ``other``), ``all`` first."""
+    groups: dict[str, list[PairMetrics]] = {"all": []}
+    for group, metrics in result.pairs.values():
+        groups["all"].append(metrics)
+        if group != "pairs":   # registered pairs have one group only, which is "all"
+            groups.setdefault(group, []).append(metrics)
+    return {name: summarise(values) for name, values in groups.items()}
+
+
+def pair_records(result: ModelResult) -> list[dict[str, Any]]:
+    """Per-pair metrics as JSON-safe dicts (inf/NaN become None)."""
+    records = []
+    for name, (group, metrics) in result.pairs.items():
+        record = {"pair": name, "group": group}
+        for key, value in asdict(metrics).items():
+            record[key] = value if isinstance(value, int) or math.isfinite(value) else None
+        records.append(record)
+    return records

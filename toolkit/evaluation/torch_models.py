@@ -1,0 +1,72 @@
+"""PyTorch detectors for `toolkit eval`: EdgeFeat checkpoints and Magic Leap SuperPoint weights.
+
+The post-processing is `models.keypoints.extract_keypoints`, the same function the export bakes into the
+ONNX graph, so a checkpoint and its artefact differ only by what export and precision change.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from toolkit.errors import ToolkitError
+from toolkit.evaluation.detectors import Detection, Detector, DetectorConfig
+
+CELL = 8
+
+
+def detect_with_network(model: nn.Module, gray: np.ndarray, config: DetectorConfig) -> Detection:
+    """Run a network with SuperPoint heads on an HxW uint8 image and keep its valid keypoints.
+
+    Images whose sides are not multiples of 8 are zero-padded at the bottom/right; keypoints in the padding
+    or within ``config.border`` px of the real image edge are dropped.
+    """
+    from models.keypoints import extract_keypoints
+
+    height, width = gray.shape
+    tensor = torch.from_numpy(gray).float().div_(255.0)[None, None]
+    pad_bottom, pad_right = (-height) % CELL, (-width) % CELL
+    if pad_bottom or pad_right:
+        tensor = F.pad(tensor, (0, pad_right, 0, pad_bottom))
+    with torch.inference_mode():
+        heads = model(tensor)
+        budget = min(config.max_keypoints, tensor.shape[2] * tensor.shape[3])
+        output = extract_keypoints(heads["logits"], heads["descriptors"], budget, config.nms_radius,
+                                   config.detection_threshold, config.border)
+    count = int(output["num_valid"][0])
+    keypoints = output["keypoints"][:count].numpy().astype(np.float32)
+    scores = output["scores"][:count].numpy().astype(np.float32)
+    descriptors = output["descriptors"][:count].numpy().astype(np.float32)
+    inside = (keypoints[:, 0] <= width - 1 - config.border) & (keypoints[:, 1] <= height - 1 - config.border)
+    return Detection(keypoints[inside], scores[inside], descriptors[inside])
+
+
+def _network_detector(model: nn.Module, config: DetectorConfig, label: str, kind: str, settings: dict) -> Detector:
+    model.eval()
+    settings = {**settings, "max_keypoints": config.max_keypoints, "nms_radius": config.nms_radius,
+                "detection_threshold": config.detection_threshold, "border": config.border}
+    return Detector(label, kind, lambda gray: detect_with_network(model, gray, config), settings)
+
+
+def checkpoint_detector(path: Path, config: DetectorConfig, label: str) -> Detector:
+    """An EdgeFeat ``.safetensors`` checkpoint (or a ``.pth`` SuperPoint state dict) via `load_checkpoint`."""
+    from models.checkpoint import load_checkpoint
+
+    model, info = load_checkpoint(path)
+    return _network_detector(model, config, label, "checkpoint",
+                             {"checkpoint": str(path), "sha256": info.sha256, "arch": info.arch,
+                              "config": info.config})
+
+
+def superpoint_detector(path: Path, config: DetectorConfig, label: str) -> Detector:
+    """Magic Leap ``superpoint_v1.pth`` weights in `models.superpoint.SuperPointNet`."""
+    from models.superpoint import load_superpoint_v1
+
+    try:
+        model = load_superpoint_v1(path)
+    except (ValueError, RuntimeError, OSError, EOFError) as exc:
+        raise ToolkitError(f"cannot load SuperPoint weights {path}: {str(exc).splitlines()[0]}") from None
+    return _network_detector(model, config, label, "superpoint", {"weights": str(path), "arch": "superpoint"})
