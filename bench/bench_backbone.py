@@ -33,6 +33,7 @@ CANDIDATES: dict[str, tuple[FeatureNetConfig, str]] = {
     "+1 full-res block": (FeatureNetConfig(blocks=[1, 1, 2, 2]), "native"),
     "wider (24/48/96/128)": (FeatureNetConfig(widths=[24, 48, 96, 128]), "native"),
     "thin heads (96)": (FeatureNetConfig(head_channels=96), "native"),
+    "deformable at H/4 instead": (FeatureNetConfig(deform_scale=2), "native"),
 }
 
 

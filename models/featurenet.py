@@ -60,6 +60,8 @@ class FeatureNetConfig:
     activation: str = "elu"
     deformable: bool = True
     modulated: bool = True
+    deform_scale: int = 3  # index into widths: 3 = after the H/8 stage, 2 = after the H/4 stage
+
 
     def __post_init__(self) -> None:
         if len(self.widths) != 4 or len(self.blocks) != 4:
@@ -68,11 +70,22 @@ class FeatureNetConfig:
             raise ValueError("widths must be >= 1 and blocks >= 0")
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"activation must be one of {ACTIVATIONS}, got {self.activation!r}")
+        if self.deform_scale not in (2, 3):
+            raise ValueError("deform_scale must be 2 (H/4) or 3 (H/8)")
         self.widths = [int(w) for w in self.widths]
         self.blocks = [int(b) for b in self.blocks]
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+def _channels_after(cfg: FeatureNetConfig, scale: int) -> int:
+    """Channels leaving stage ``scale``: the last stage up to it that has blocks sets them."""
+    channels = cfg.widths[0]
+    for index in range(scale + 1):
+        if cfg.blocks[index]:
+            channels = cfg.widths[index]
+    return channels
 
 
 class FeatureNet(nn.Module):
@@ -102,8 +115,9 @@ class FeatureNet(nn.Module):
             stages.append(nn.Sequential(*layers))
         self.stages = nn.ModuleList(stages)
         if cfg.deformable:
-            self.deform = DeformableConv(channels, channels, modulated=cfg.modulated)
-            self.deform_bn = nn.BatchNorm2d(channels)
+            deform_channels = _channels_after(cfg, cfg.deform_scale)
+            self.deform = DeformableConv(deform_channels, deform_channels, modulated=cfg.modulated)
+            self.deform_bn = nn.BatchNorm2d(deform_channels)
             self.deform_act = make_activation(act)
         self.detector = nn.Sequential(
             DepthwiseSeparableBlock(channels, cfg.head_channels, act), nn.Conv2d(cfg.head_channels, 65, 1)
@@ -116,10 +130,10 @@ class FeatureNet(nn.Module):
     def backbone(self, image: torch.Tensor) -> torch.Tensor:
         """image [B, 1, H, W] -> shared features [B, C, H/8, W/8]."""
         x = self.stem(image)
-        for stage in self.stages:
+        for scale, stage in enumerate(self.stages):
             x = stage(x)
-        if self.config.deformable:
-            x = self.deform_act(self.deform_bn(self.deform(x)))
+            if self.config.deformable and scale == self.config.deform_scale:
+                x = self.deform_act(self.deform_bn(self.deform(x)))
         return x
 
     def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
