@@ -52,8 +52,11 @@ def deform_conv2d(
     out_w = _output_size(width, kw, stride, padding, dilation)
     locations = out_h * out_w
 
-    # Regular grid positions of every tap, [taps, Ho, Wo], plus the learned offsets.
-    dtype, device = x.dtype, x.device
+    # Regular grid positions of every tap, [taps, Ho, Wo], plus the learned offsets. Positions and
+    # indices stay at least float32 whatever the input dtype: half precision cannot hold integers above 2048.
+    dtype, device = torch.promote_types(x.dtype, torch.float32), x.device
+    offset = offset.to(dtype)
+    mask = None if mask is None else mask.to(dtype)
     base_y = (torch.arange(out_h, dtype=dtype, device=device) * stride - padding).view(1, out_h, 1)
     base_x = (torch.arange(out_w, dtype=dtype, device=device) * stride - padding).view(1, 1, out_w)
     tap_y = (torch.arange(kh, dtype=dtype, device=device) * dilation).repeat_interleave(kw).view(taps, 1, 1)
@@ -82,7 +85,7 @@ def deform_conv2d(
 
     pixels = F.pad(x, (1, 1, 1, 1)).permute(0, 2, 3, 1).reshape(batch * padded_h * padded_w, channels)
     corners = torch.index_select(pixels, 0, flat_index).reshape(4, batch, taps, locations, channels)
-    sampled = (corners * weights.reshape(4, batch, taps, locations, 1)).sum(0)  # [B, taps, L, C]
+    sampled = (corners * weights.reshape(4, batch, taps, locations, 1).to(x.dtype)).sum(0)  # [B, taps, L, C]
 
     columns = sampled.permute(0, 2, 1, 3).reshape(batch, locations, taps * channels)
     kernel = weight.permute(2, 3, 1, 0).reshape(taps * channels, out_channels)  # tap-major, then channel

@@ -115,3 +115,13 @@ def test_untrained_layer_is_a_plain_convolution():
     x = torch.randn(1, 4, 9, 9)
     with torch.no_grad():
         assert torch.allclose(layer(x), layer.conv(x), atol=1e-5)
+
+
+def test_half_precision_inputs_index_correctly():
+    # 60x60 padded maps have flat indices above 2048, which bfloat16/float16 cannot represent exactly.
+    x, offset, weight, bias, mask = random_case(3, batch=1, channels=2, height=60, width=60, out_channels=2)
+    reference = deform_conv2d(x, offset, weight, bias, mask)
+    half = deform_conv2d(x.bfloat16(), offset.bfloat16(), weight.bfloat16(), bias.bfloat16(), mask.bfloat16())
+    assert half.dtype == torch.bfloat16
+    scale = reference.abs().max()
+    assert (half.float() - reference).abs().max() / scale < 0.05
