@@ -17,6 +17,8 @@ from vo_runtime.errors import VORuntimeError
 COMMAND_MODULES: list[str] = [
     "toolkit.cmd_export",
     "toolkit.cmd_eval",
+    "toolkit.cmd_label",
+    "toolkit.cmd_train",
 ]
 
 

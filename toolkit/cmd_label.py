@@ -1,0 +1,140 @@
+"""`toolkit label`: teacher keypoint labels for an image folder by homographic adaptation."""
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from toolkit.errors import ToolkitError
+from toolkit.training.adaptation import AdaptationConfig, label_image
+from toolkit.training.label_store import LabelStore, find_images, read_image
+
+EPILOG = """examples:
+  toolkit label --teacher alike-n --images ../shared/data/train_images --out labels/alike-n
+  toolkit label --teacher shi-tomasi --images photos/ --out labels/st --num-homographies 50 --size 120x160
+  toolkit label --teacher superpoint:~/weights/superpoint_v1.pth --images photos/ --out labels/sp
+
+An interrupted run continues where it stopped when rerun with the same arguments; a folder made with
+another teacher or other settings is refused.
+"""
+
+
+@dataclass
+class LabelSummary:
+    labelled: int
+    skipped: int  # already in the store
+    unreadable: int
+    seconds: float
+
+    @property
+    def images_per_second(self) -> float:
+        return self.labelled / self.seconds if self.seconds > 0 else 0.0
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"240x320"`` -> (240, 320) = (height, width); both multiples of 8."""
+    try:
+        height, width = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ToolkitError(f"--size must look like 240x320 (height x width), got {text!r}") from None
+    if height < 16 or width < 16 or height % 8 or width % 8:
+        raise ToolkitError(f"--size {text}: height and width must be multiples of 8, at least 16")
+    return height, width
+
+
+def pick_device(name: str | None = None) -> torch.device:
+    if name:
+        return torch.device(name)
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def label_folder(
+    teacher_name: str,
+    images: str | Path,
+    out: str | Path,
+    config: AdaptationConfig,
+    device: torch.device | None = None,
+    progress: bool = True,
+) -> LabelSummary:
+    """Label every readable image under ``images`` into the store at ``out`` (resumable)."""
+    from models.teachers import build_teacher
+
+    if config.num_homographies < 1:
+        raise ToolkitError("--num-homographies must be at least 1")
+    files = find_images(images)
+    if not files:
+        raise ToolkitError(f"no image files in {images}")
+    device = device or pick_device()
+    teacher = build_teacher(teacher_name).to(device)
+    created = not (Path(out) / "store.json").exists()
+    store = LabelStore.create_or_open(out, teacher_name, config.to_dict())
+    root = Path(images)
+    labelled = skipped = unreadable = 0
+    start = time.perf_counter()
+    bar = tqdm(files, desc="label", unit="img", file=sys.stderr, disable=not progress)
+    try:
+        for path in bar:
+            loaded = read_image(path, config.size)
+            if loaded is None:
+                unreadable += 1
+                continue
+            gray, sha256 = loaded
+            relative = path.relative_to(root).as_posix()
+            if store.has(sha256):
+                store.index[relative] = sha256
+                skipped += 1
+                continue
+            # Homographies depend on the image and the seed only, so labels do not depend on run order.
+            generator = torch.Generator().manual_seed(config.seed * 1_000_003 + int(sha256[:12], 16))
+            image = torch.from_numpy(gray)[None, None].to(device)
+            keypoints, scores = label_image(teacher, image, config, generator)
+            store.put(sha256, relative, keypoints.numpy(), scores.numpy())
+            labelled += 1
+            if labelled % 25 == 0:
+                store.save_index()
+            bar.set_postfix(new=labelled, done_before=skipped, unreadable=unreadable)
+    finally:
+        store.save_index()
+        bar.close()
+    if labelled + skipped == 0:
+        if created:  # leave no empty label folder behind
+            shutil.rmtree(out, ignore_errors=True)
+        raise ToolkitError(f"none of the {len(files)} image files in {images} could be read")
+    return LabelSummary(labelled, skipped, unreadable, time.perf_counter() - start)
+
+
+def run(args: argparse.Namespace) -> int:
+    config = AdaptationConfig(
+        num_homographies=args.num_homographies, size=parse_size(args.size), max_keypoints=args.max_keypoints
+    )
+    summary = label_folder(args.teacher, args.images, args.out, config, pick_device(args.device))
+    print(
+        f"labelled {summary.labelled} images ({summary.images_per_second:.2f} images/s), "
+        f"{summary.skipped} already labelled, {summary.unreadable} unreadable skipped -> {args.out}"
+    )
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "label",
+        help="label an image folder with a teacher under homographic adaptation",
+        description="Run a teacher on many random homographic warps of every image, average the un-warped "
+        "score maps, keep the NMS peaks: the keypoint labels `toolkit train` learns from.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--teacher", required=True, help="alike-t|alike-s|alike-n|alike-l|aliked-t16|aliked-n16|superpoint:PATH|shi-tomasi")
+    parser.add_argument("--images", required=True, help="folder of images (searched recursively)")
+    parser.add_argument("--out", required=True, help="label folder to create or continue")
+    parser.add_argument("--num-homographies", type=int, default=100, help="warps per image, identity included (default 100)")
+    parser.add_argument("--size", default="240x320", help="HxW images are labelled and trained at (default 240x320)")
+    parser.add_argument("--max-keypoints", type=int, default=512, help="keypoints kept per image (default 512)")
+    parser.add_argument("--device", default=None, help="cpu or cuda[:N] (default: cuda when available)")
+    parser.set_defaults(func=run)

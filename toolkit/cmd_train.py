@@ -1,0 +1,64 @@
+"""`toolkit train`: self-supervised training of the network from teacher labels and warped pairs."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from toolkit.training.trainer import TrainConfig, read_config_file, resolve_config, train
+
+EPILOG = """examples:
+  toolkit train --images ../shared/data/train_images --labels labels/alike-n --out runs/fn1 --steps 20000
+  toolkit train --images photos/ --labels labels/st --config train.toml --batch 16 --out runs/fn2
+  toolkit train --images photos/ --labels labels/st --out runs/fn2 --resume --steps 40000
+  torchrun --nproc_per_node 4 -m toolkit train --images photos/ --labels labels/st --out runs/ddp
+
+--config takes a JSON or TOML file with any TrainConfig field (arch, model, steps, batch, lr,
+checkpoint_every, validate_every, homography, augment, loss, validation, ...). --resume continues the
+run in --out from its last checkpoint with the run's own config (--steps may raise the total).
+"""
+
+
+def run(args: argparse.Namespace) -> int:
+    from toolkit.errors import ToolkitError
+
+    if args.resume and args.config:
+        raise ToolkitError("--config cannot be combined with --resume: a resumed run keeps its own config")
+    config = read_config_file(args.config) if args.config else TrainConfig()
+    run_dir = Path(args.out)
+    config = resolve_config(run_dir, args.resume, config, args.steps, args.batch)
+    if args.workers is not None:  # allowed on --resume too: samples do not depend on the worker count
+        config.num_workers = args.workers
+    result = train(config, args.images, args.labels, run_dir, resume=args.resume)
+    if result["rank"] != 0:  # under torchrun only the first process reports
+        return 0
+    last, val = result["last"], result["validation"]
+    line = f"trained to step {result['step']} on {result['train_images']} images ({result['val_images']} held back)"
+    if last:
+        line += f", loss {last['loss']:.4f}"
+    if val:
+        line += f", val repeatability {val['repeatability']:.3f}, NN accuracy {val['nn_accuracy']:.3f}"
+    if result["unreadable"]:
+        line += f"; {result['unreadable']} unreadable files skipped"
+    print(f"{line} -> {run_dir}")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "train",
+        help="train the network from teacher labels (homographic pairs, SuperPoint losses)",
+        description="Train the keypoint network without hand labels: keypoint cross-entropy against the "
+        "teacher's labels on both views of a random homographic pair, plus the descriptor hinge loss over "
+        "corresponding cells. One GPU, several under torchrun (DDP), or a CPU (gloo).",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--images", required=True, help="folder of images (the one given to `toolkit label`)")
+    parser.add_argument("--labels", required=True, help="label folder written by `toolkit label`")
+    parser.add_argument("--config", default=None, help="JSON or TOML file of TrainConfig fields")
+    parser.add_argument("--steps", type=int, default=None, help="total optimisation steps (default 20000)")
+    parser.add_argument("--batch", type=int, default=None, help="pairs per step per process (default 8)")
+    parser.add_argument("--out", default="runs/train", help="run folder (default runs/train)")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    parser.add_argument("--workers", type=int, default=None, help="DataLoader worker processes (default: 4 on CUDA, 0 on CPU)")
+    parser.set_defaults(func=run)

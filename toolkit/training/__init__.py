@@ -1,0 +1,1 @@
+"""Self-supervised training: homographies, homographic adaptation, label store, pairs, losses, trainer."""
