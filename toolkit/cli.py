@@ -19,6 +19,8 @@ COMMAND_MODULES: list[str] = [
     "toolkit.cmd_eval",
     "toolkit.cmd_label",
     "toolkit.cmd_train",
+    "toolkit.cmd_prune",
+    "toolkit.cmd_quantise",
 ]
 
 

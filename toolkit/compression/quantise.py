@@ -1,0 +1,245 @@
+"""Quantising an exported artefact: INT8 (x86-cpu, onnxruntime static QDQ) or FP16 (weights in FP16).
+
+INT8 follows what measured well on this graph: only Conv and the ReLU after it are quantised (the
+deformable conv, ELU, softmax and top-K stay float; with ReLU included the Q/DQ pair sits after the ReLU,
+so the uint8 range is not half spent on negatives that ReLU discards), weights per output channel int8, activations uint8 from MinMax calibration
+on real images, and the two head output 1x1 convs stay float (their outputs feed a softmax threshold and
+an L2 normalisation). ``keep_sensitive`` also keeps the N convs with the largest isolated error in float.
+The result is a new artefact directory with its own manifest; the FP32 artefact is not touched.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+
+from export.artefact import MIN_IDENTICAL
+from export.checks import check_against_profile, require_non_negative_gathers
+from export.onnx_export import op_histogram
+from export.parity import default_parity_paths, prepare_image
+from profiles import load_profile
+from toolkit import __version__
+from toolkit.compression.images import default_image_dir, load_images
+from toolkit.compression.report import interleaved_median_ms, ort_drift, ort_session
+from toolkit.compression.sensitivity import head_output_convs, layer_sensitivity
+from toolkit.errors import ToolkitError
+from vo_runtime.artefact import MANIFEST_NAME, MODEL_NAME, sha256_file, verify_artefact
+
+MODES = ("int8", "fp16")
+QUANTISED_OPS = ("Conv", "Relu")  # the default list also quantises the sampling arithmetic: ~8 % heatmap error
+SENSITIVITY_IMAGES = 8  # isolated per-layer errors settle after a few images
+
+
+@dataclass
+class QuantiseOptions:
+    artefact: Path
+    mode: str
+    output: Path
+    calibration: Path | None = None
+    calibration_count: int = 32
+    keep_sensitive: int = 0
+    force: bool = False
+    timing_repeats: int = 20
+
+
+class _ImageReader:
+    """onnxruntime CalibrationDataReader over prepared images [N, 1, H, W]."""
+
+    def __init__(self, input_name: str, images: np.ndarray) -> None:
+        self.feeds = iter([{input_name: image[None]} for image in images])
+
+    def get_next(self):
+        return next(self.feeds, None)
+
+    def rewind(self):  # pragma: no cover - onnxruntime's API; one pass is all MinMax needs
+        pass
+
+
+def _name_unnamed_nodes(model: onnx.ModelProto) -> None:
+    """nodes_to_exclude works by node name; give anonymous nodes stable ones."""
+    for index, node in enumerate(model.graph.node):
+        if not node.name:
+            node.name = f"{node.op_type}_{index}"
+
+
+def _preprocess(model_path: Path, work: Path) -> Path:
+    """onnxruntime's quant_pre_process (shape inference + graph cleanup); the raw graph if it refuses."""
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    target = work / "pre.onnx"
+    try:
+        quant_pre_process(str(model_path), str(target), skip_symbolic_shape=True)  # symbolic pass fails on these graphs
+        return target
+    except Exception:  # an optional optimisation: quantising the raw graph is still correct
+        return model_path
+
+
+def quantise_int8(model: onnx.ModelProto, calibration: np.ndarray, exclude: list[str]) -> onnx.ModelProto:
+    """Static QDQ INT8 (per-channel S8 weights, U8 activations, MinMax) of the Conv/Relu nodes not in ``exclude``."""
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+
+    with tempfile.TemporaryDirectory(prefix="edgefeat-quant-") as work:
+        work_dir = Path(work)
+        source = work_dir / "fp32.onnx"
+        onnx.save(model, str(source))
+        prepared = _preprocess(source, work_dir)
+        target = work_dir / "int8.onnx"
+        quantize_static(
+            str(prepared), str(target), _ImageReader(model.graph.input[0].name, calibration),
+            quant_format=QuantFormat.QDQ, per_channel=True, activation_type=QuantType.QUInt8,
+            weight_type=QuantType.QInt8, op_types_to_quantize=list(QUANTISED_OPS), nodes_to_exclude=list(exclude),
+            calibrate_method=CalibrationMethod.MinMax,
+        )
+        return onnx.load(str(target))
+
+
+def quantise_fp16(model: onnx.ModelProto) -> onnx.ModelProto:
+    """FP16 weights and arithmetic, FP32 inputs and outputs (Cast at the edges)."""
+    from onnxruntime.transformers.float16 import convert_float_to_float16
+
+    return convert_float_to_float16(model, keep_io_types=True)
+
+
+def _check_output(output: Path, force: bool, source: Path) -> None:
+    if output.resolve() == source.resolve():
+        raise ToolkitError("the quantised artefact needs its own directory (-o must differ from --artefact)")
+    if output.exists() and (not output.is_dir() or (any(output.iterdir()) and not force)):
+        raise ToolkitError(f"{output} exists and is not empty; pass --force to replace it")
+
+
+def _parity_images(height: int, width: int) -> tuple[np.ndarray, list[str]]:
+    paths = default_parity_paths()
+    return np.concatenate([prepare_image(path, height, width) for path in paths]), [p.name for p in paths]
+
+
+def quantise_artefact(options: QuantiseOptions, log=print) -> Path:
+    """Quantise ``options.artefact`` into ``options.output``; returns the new artefact directory."""
+    if options.mode not in MODES:
+        raise ToolkitError(f"--mode must be one of {', '.join(MODES)}, got {options.mode!r}")
+    source = Path(options.artefact)
+    manifest = verify_artefact(source)  # ArtefactError (exit 2) when missing or the checksum fails
+    profile = load_profile(manifest["target"])
+    if options.mode == "int8" and profile.name == "tx2":
+        raise ToolkitError("int8 is refused for tx2: its Pascal GPU has no fast INT8 path (INT8 engines ran slower "
+                           "than FP16); use --mode fp16")
+    if options.mode == "int8" and not profile.runtime.startswith("onnxruntime"):
+        raise ToolkitError(f"int8 needs an onnxruntime target; {profile.name} runs {profile.runtime}")
+    if manifest.get("precision_applied", "fp32") != "fp32":
+        raise ToolkitError(f"{source} is already {manifest.get('precision_applied')}; quantise the FP32 artefact")
+    if options.calibration_count < 1:
+        raise ToolkitError(f"--calibration-count must be >= 1, got {options.calibration_count}")
+    if options.keep_sensitive < 0:
+        raise ToolkitError(f"--keep-sensitive must be >= 0, got {options.keep_sensitive}")
+    output = Path(options.output)
+    _check_output(output, options.force, source)
+    model = onnx.load(str(source / manifest["onnx"]["file"]))
+    _name_unnamed_nodes(model)
+    height, width = manifest["input"]["shape"][2:]
+
+    details: dict = {"mode": options.mode}
+    if options.mode == "int8":
+        folder = Path(options.calibration) if options.calibration else default_image_dir()
+        calibration, paths = load_images(folder, options.calibration_count, (height, width))
+        log(f"calibrating on {len(paths)} images from {folder}")
+        sensitivity = layer_sensitivity(model, calibration[:SENSITIVITY_IMAGES])
+        heads = head_output_convs(model)
+        candidates = [item.node for item in sensitivity if item.node not in heads]
+        kept = candidates[: options.keep_sensitive]
+        quantised = quantise_int8(model, calibration, heads + kept)
+        precision_applied = "onnx-int8-qdq"
+        details.update({
+            "scheme": f"static QDQ of {'+'.join(QUANTISED_OPS)}, per-channel int8 weights, uint8 activations, MinMax",
+            "calibration": {"folder": str(folder), "count": len(paths), "requested": options.calibration_count,
+                            "images": [str(p.relative_to(folder)) for p in paths]},
+            "float_nodes": {"head_outputs": heads, "sensitive": kept},
+            "sensitivity": [item.to_dict() for item in sensitivity],
+            "sensitivity_images": min(len(paths), SENSITIVITY_IMAGES),
+        })
+        activation = manifest.get("model", {}).get("config", {}).get("activation")
+        if activation == "elu":
+            log("note: ELU stays float in onnxruntime, so this INT8 graph is barely faster; the ReLU deploy variant "
+                "(checkpoint with activation relu) quantises end to end")
+    else:
+        quantised = quantise_fp16(model)
+        precision_applied = "onnx-fp16-weights"
+        details["scheme"] = "float16 weights and arithmetic, float32 inputs/outputs (keep_io_types)"
+    check_against_profile(quantised, profile)  # names the first op the target cannot run
+
+    images, names = _parity_images(height, width)
+    reference, candidate = ort_session(model), ort_session(quantised)
+    drift = ort_drift(reference, candidate, images)
+    if options.mode == "fp16":
+        # FP16 index arithmetic is exact only below 2048: prove the gathers still read where they should.
+        details["min_gather_index"] = require_non_negative_gathers(quantised, [image[None] for image in images], profile)
+        if drift.keypoints_unchanged < MIN_IDENTICAL["fp16"]:  # NaN (dense graphs) compares False
+            raise ToolkitError(f"fp16 parity failed: only {drift.keypoints_unchanged:.1%} of keypoints unchanged "
+                               f"against FP32 (need {MIN_IDENTICAL['fp16']:.0%})")
+    feed = {reference.get_inputs()[0].name: images[:1]}
+    timings = interleaved_median_ms({"fp32": lambda: reference.run(None, feed), options.mode: lambda: candidate.run(None, feed)},
+                                    repeats=options.timing_repeats)
+    details["parity_vs_fp32"] = {**drift.to_dict(), "images": names}
+    details["latency_ms_1thread"] = {**{k: round(v, 3) for k, v in timings.items()},
+                                     "speedup": round(timings["fp32"] / timings[options.mode], 3)}
+
+    new_manifest = json.loads(json.dumps(manifest))
+    new_manifest.update({
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "toolkit_version": __version__,
+        "precision": options.mode,
+        "precision_applied": precision_applied,
+        "source_artefact": {"path": str(source), "onnx_sha256": manifest["onnx"]["sha256"]},
+        "quantisation": details,
+    })
+    output.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-", dir=output.parent))
+    try:
+        onnx.save(quantised, str(staging / MODEL_NAME))
+        new_manifest["onnx"] = {**manifest["onnx"], "file": MODEL_NAME, "sha256": sha256_file(staging / MODEL_NAME),
+                                "op_types": op_histogram(quantised)}
+        (staging / MANIFEST_NAME).write_text(json.dumps(new_manifest, indent=2) + "\n")
+        (staging / "README.md").write_text(_readme(new_manifest))
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(staging, 0o777 & ~umask)  # mkdtemp makes a private 0700 directory
+        if output.exists():
+            shutil.rmtree(output)
+        os.replace(staging, output)
+    finally:
+        if staging.exists():
+            shutil.rmtree(staging, ignore_errors=True)
+    return output
+
+
+def _readme(manifest: dict) -> str:
+    q = manifest["quantisation"]
+    parity = q["parity_vs_fp32"]
+    lines = [
+        f"# EdgeFeat artefact: {manifest['model']['arch']} for {manifest['target']}, {manifest['precision'].upper()}",
+        "",
+        f"Quantised from the FP32 artefact (model.onnx sha256 `{manifest['source_artefact']['onnx_sha256']}`): {q['scheme']}.",
+        f"- input `image` {manifest['input']['shape']} float32, grayscale / 255; outputs as the FP32 artefact (float32)",
+        f"- model.onnx sha256: `{manifest['onnx']['sha256']}`",
+    ]
+    if "calibration" in q:
+        lines.append(f"- calibrated on {q['calibration']['count']} images from `{q['calibration']['folder']}`; "
+                     f"float convs: {', '.join(q['float_nodes']['head_outputs'] + q['float_nodes']['sensitive'])}")
+    lines += [
+        f"- against FP32 on {len(parity['images'])} real images: {parity['keypoints_unchanged']:.2%} keypoints unchanged, "
+        f"descriptor cosine {parity['descriptor_cosine']:.4f}",
+        f"- latency (onnxruntime, 1 thread, median): FP32 {q['latency_ms_1thread']['fp32']} ms, "
+        f"{manifest['precision'].upper()} {q['latency_ms_1thread'][manifest['precision']]} ms",
+        "",
+    ]
+    if manifest["target"] == "tx2":  # TensorRT engines are built on the device itself
+        lines += ["On the TX2 (JetPack 4.6, MAXN): `/usr/src/tensorrt/bin/trtexec --onnx=model.onnx --fp16 "
+                  "--workspace=1024 --saveEngine=model_fp16.engine`.", ""]
+    else:
+        lines += ["Load it like any artefact: `vo_runtime.FeatureExtractor(\"path/to/this/directory\")`.", ""]
+    return "\n".join(lines)
