@@ -21,6 +21,7 @@ COMMAND_MODULES: list[str] = [
     "toolkit.cmd_train",
     "toolkit.cmd_prune",
     "toolkit.cmd_quantise",
+    "toolkit.cmd_profile",
 ]
 
 
