@@ -24,7 +24,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from export.artefact import ExportOptions, export_artefact, parse_size  # noqa: E402
+from export.artefact import ExportOptions, export_artefact  # noqa: E402
+from toolkit.sizes import parse_size  # noqa: E402
 from export.parity import shared_data_dir  # noqa: E402
 from models.checkpoint import save_checkpoint  # noqa: E402
 from models.featurenet import FeatureNetConfig  # noqa: E402

@@ -6,8 +6,6 @@ passed: the artefact is assembled in a temporary sibling directory and renamed i
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import tempfile
 import time
 from dataclasses import dataclass
@@ -25,6 +23,7 @@ from models.checkpoint import load_checkpoint
 from models.deform import set_deform_strategy
 from profiles import TargetProfile, load_profile
 from toolkit import __version__
+from toolkit.atomic import atomic_directory
 from toolkit.errors import ToolkitError
 from vo_runtime.artefact import ARTEFACT_FORMAT, MANIFEST_NAME, MODEL_NAME, sha256_file
 
@@ -46,17 +45,6 @@ class ExportOptions:
     dense: bool = False
     force: bool = False
     parity_images: Path | None = None
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    """'240x320' -> (240, 320); both must be positive multiples of 8 (the detector's cell)."""
-    try:
-        height, width = (int(part) for part in text.lower().split("x"))
-    except ValueError:
-        raise ToolkitError(f"input size must look like HxW (e.g. 240x320), got {text!r}") from None
-    if height < 16 or width < 16 or height % 8 or width % 8:
-        raise ToolkitError(f"input size {height}x{width} must be at least 16x16 and divisible by 8")
-    return height, width
 
 
 def _check_output_dir(output: Path, force: bool) -> None:
@@ -135,9 +123,7 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
         )
     final_model = dense_model if options.dense else keypoint_model
 
-    output.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-", dir=output.parent))
-    try:
+    with atomic_directory(output) as staging:
         onnx.save(final_model, str(staging / MODEL_NAME))
         manifest = {
             "format": ARTEFACT_FORMAT,
@@ -165,20 +151,7 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
         }
         (staging / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
         (staging / "README.md").write_text(artefact_readme(manifest, profile))
-        _apply_umask(staging)  # mkdtemp makes a private 0700 directory
-        if output.exists():
-            shutil.rmtree(output)
-        os.replace(staging, output)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
     return output
-
-
-def _apply_umask(directory: Path) -> None:
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(directory, 0o777 & ~umask)
 
 
 def _describe_outputs(dense: bool, k: int, height: int, width: int, net: torch.nn.Module) -> dict:

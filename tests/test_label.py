@@ -138,7 +138,7 @@ def test_bad_input_is_one_line_and_exit_2(image_folder: Path, tmp_path: Path, ca
         (["--images", str(broken)], "none of the 2 image files"),
         (["--images", str(image_folder), "--teacher", "orb"], "unknown teacher"),
         (["--images", str(image_folder), "--teacher", f"superpoint:{tmp_path / 'sp.pth'}"], "weight file not found"),
-        (["--images", str(image_folder), "--size", "60x90"], "multiples of 8"),
+        (["--images", str(image_folder), "--size", "60x90"], "divisible by 8"),
     ]
     for extra, message in cases:
         args = ["label", "--teacher", "shi-tomasi", "--out", str(tmp_path / "out"), "--num-homographies", "2"]

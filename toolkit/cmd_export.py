@@ -4,7 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from export.artefact import ExportOptions, export_artefact, parse_size
+from export.artefact import ExportOptions, export_artefact
+from toolkit.sizes import parse_size
 
 EXAMPLES = """examples:
   toolkit export --target tx2 --checkpoint runs/a/best.safetensors -o out/tx2

@@ -12,6 +12,7 @@ import torch
 from tqdm import tqdm
 
 from toolkit.errors import ToolkitError
+from toolkit.sizes import parse_size
 from toolkit.training.adaptation import AdaptationConfig, label_image
 from toolkit.training.label_store import LabelStore, find_images, read_image
 
@@ -35,17 +36,6 @@ class LabelSummary:
     @property
     def images_per_second(self) -> float:
         return self.labelled / self.seconds if self.seconds > 0 else 0.0
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    """``"240x320"`` -> (240, 320) = (height, width); both multiples of 8."""
-    try:
-        height, width = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ToolkitError(f"--size must look like 240x320 (height x width), got {text!r}") from None
-    if height < 16 or width < 16 or height % 8 or width % 8:
-        raise ToolkitError(f"--size {text}: height and width must be multiples of 8, at least 16")
-    return height, width
 
 
 def pick_device(name: str | None = None) -> torch.device:

@@ -5,7 +5,7 @@ import argparse
 import os
 from pathlib import Path
 
-from export.artefact import parse_size
+from toolkit.sizes import parse_size
 from profiles import TargetProfile, load_profile
 from toolkit.errors import ToolkitError
 

@@ -5,7 +5,7 @@ import argparse
 import json
 from pathlib import Path
 
-from export.artefact import parse_size
+from toolkit.sizes import parse_size
 from toolkit.compression.workflow import PruneOptions, format_report, prune_checkpoint
 
 EXAMPLES = """examples:

@@ -10,8 +10,6 @@ The result is a new artefact directory with its own manifest; the FP32 artefact 
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import tempfile
 import time
 from dataclasses import dataclass
@@ -29,6 +27,7 @@ from toolkit import __version__
 from toolkit.compression.images import default_image_dir, load_images
 from toolkit.compression.report import interleaved_median_ms, ort_drift, ort_session
 from toolkit.compression.sensitivity import head_output_convs, layer_sensitivity
+from toolkit.atomic import atomic_directory
 from toolkit.errors import ToolkitError
 from vo_runtime.artefact import MANIFEST_NAME, MODEL_NAME, sha256_file, verify_artefact
 
@@ -197,23 +196,12 @@ def quantise_artefact(options: QuantiseOptions, log=print) -> Path:
         "source_artefact": {"path": str(source), "onnx_sha256": manifest["onnx"]["sha256"]},
         "quantisation": details,
     })
-    output.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-", dir=output.parent))
-    try:
+    with atomic_directory(output) as staging:
         onnx.save(quantised, str(staging / MODEL_NAME))
         new_manifest["onnx"] = {**manifest["onnx"], "file": MODEL_NAME, "sha256": sha256_file(staging / MODEL_NAME),
                                 "op_types": op_histogram(quantised)}
         (staging / MANIFEST_NAME).write_text(json.dumps(new_manifest, indent=2) + "\n")
         (staging / "README.md").write_text(_readme(new_manifest))
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(staging, 0o777 & ~umask)  # mkdtemp makes a private 0700 directory
-        if output.exists():
-            shutil.rmtree(output)
-        os.replace(staging, output)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
     return output
 
 

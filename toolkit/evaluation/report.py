@@ -6,15 +6,13 @@ temporary directory beside the target and renamed into place, so a crash never l
 from __future__ import annotations
 
 import json
-import os
 import re
-import shutil
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from toolkit.atomic import atomic_directory
 from toolkit.errors import ToolkitError
 from toolkit.evaluation.metrics import warp_points
 from toolkit.evaluation.runner import PairExample
@@ -128,21 +126,9 @@ def check_output_dir(path: Path) -> None:
 def write_report(path: Path, report: dict[str, Any], examples: dict[str, PairExample]) -> None:
     """Write results.json, results.md and the match PNGs into a temp dir beside ``path``, then swap it in."""
     check_output_dir(path)
-    staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent.resolve()))
-    try:
+    with atomic_directory(path) as staging:
         (staging / REPORT_JSON).write_text(json.dumps(report, indent=2) + "\n")
         (staging / REPORT_MARKDOWN).write_text(format_markdown(report))
         for label, example in examples.items():
             plot_matches(example, staging / f"matches_{safe_file_stem(label)}.png", label,
                          report["protocol"]["correct_threshold"])
-        os.chmod(staging, 0o755)
-        retired = None
-        if path.exists():
-            retired = Path(tempfile.mkdtemp(prefix=f".{path.name}.old.", dir=path.parent.resolve()))
-            os.rename(path, retired / path.name)
-        os.rename(staging, path)
-        if retired is not None:
-            shutil.rmtree(retired, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise

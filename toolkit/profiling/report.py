@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import tempfile
 from pathlib import Path
 
+from toolkit.atomic import atomic_directory
 from toolkit.errors import ToolkitError
 
 TOP_LAYERS = 12
@@ -146,19 +146,10 @@ def write_outputs(report: dict, output: Path, force: bool) -> Path:
     """Write profile.json, profile.md and profile.png into ``output`` via a staging directory and a rename."""
     if output.exists() and (not output.is_dir() or (any(output.iterdir()) and not force)):
         raise ToolkitError(f"output {output} exists and is not an empty directory; pass --force to replace it")
-    output.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-", dir=output.parent))
-    try:
+    with atomic_directory(output) as staging:
         (staging / "profile.json").write_text(json.dumps(report, indent=2) + "\n")
         (staging / "profile.md").write_text(markdown_text(report))
         plot_layers(report, staging / "profile.png")
-        os.chmod(staging, 0o755)
-        if output.exists():
-            shutil.rmtree(output)
-        os.replace(staging, output)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
     return output
 
 
