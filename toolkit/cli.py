@@ -22,6 +22,7 @@ COMMAND_MODULES: list[str] = [
     "toolkit.cmd_prune",
     "toolkit.cmd_quantise",
     "toolkit.cmd_profile",
+    "toolkit.cmd_vo",
 ]
 
 

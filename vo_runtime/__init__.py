@@ -2,7 +2,13 @@
 
 Depends on numpy, OpenCV and onnxruntime only (no torch).
 """
-from vo_runtime.errors import ArtefactError, VORuntimeError
-from vo_runtime.features import FeatureExtractor, Features
+from vo_runtime.camera import Camera, load_camera
+from vo_runtime.errors import ArtefactError, CalibrationError, VORuntimeError
+from vo_runtime.features import FeatureExtractor, Features, OrbExtractor
+from vo_runtime.odometry import MonoVO, VisualOdometry, VOConfig, VOResult
+from vo_runtime.trajectory import write_trajectory
 
-__all__ = ["ArtefactError", "FeatureExtractor", "Features", "VORuntimeError"]
+__all__ = [
+    "ArtefactError", "CalibrationError", "Camera", "FeatureExtractor", "Features", "MonoVO", "OrbExtractor",
+    "VOConfig", "VOResult", "VORuntimeError", "VisualOdometry", "load_camera", "write_trajectory",
+]

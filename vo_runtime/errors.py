@@ -7,3 +7,7 @@ class VORuntimeError(Exception):
 
 class ArtefactError(VORuntimeError):
     """The artefact directory is missing, incomplete, or fails its checksum."""
+
+
+class CalibrationError(VORuntimeError):
+    """The camera calibration is missing, malformed, or does not fit the frames."""

@@ -94,3 +94,26 @@ class FeatureExtractor:
             keypoints[:, 0] = (keypoints[:, 0] + 0.5) * (width / self.width) - 0.5
             keypoints[:, 1] = (keypoints[:, 1] + 0.5) * (height / self.height) - 0.5
         return Features(keypoints, scores[:n].astype(np.float32), descriptors[:n].astype(np.float32))
+
+
+class OrbExtractor:
+    """OpenCV ORB as a `FeatureExtractor` stand-in: a baseline to compare artefacts against, and a test double.
+
+    Binary descriptors are unpacked to +-1 and scaled to unit norm, so the L2 distance between two of them is
+    ``sqrt(4 * hamming / bits)`` and the float matcher works unchanged (Hamming 64 of 256 bits -> 1.0).
+    """
+
+    def __init__(self, max_keypoints: int = 1000, fast_threshold: int = 20, levels: int = 1) -> None:
+        self.orb = cv2.ORB_create(nfeatures=int(max_keypoints), fastThreshold=int(fast_threshold), nlevels=int(levels))
+
+    def __call__(self, image: np.ndarray) -> Features:
+        gray = to_gray_u8(image)
+        keypoints, descriptors = self.orb.detectAndCompute(gray, None)
+        if descriptors is None or not keypoints:
+            return Features(np.zeros((0, 2), np.float32), np.zeros(0, np.float32), np.zeros((0, 256), np.float32))
+        scores = np.array([kp.response for kp in keypoints], dtype=np.float32)
+        order = np.argsort(-scores, kind="stable")
+        bits = np.unpackbits(descriptors, axis=1).astype(np.float32)
+        unit = (2.0 * bits - 1.0) / np.sqrt(bits.shape[1])
+        points = np.array([kp.pt for kp in keypoints], dtype=np.float32)
+        return Features(points[order], scores[order], unit[order])

@@ -1,0 +1,79 @@
+"""Readers for image sequences: the KITTI odometry layout, the TUM RGB-D layout, or a plain folder.
+
+- KITTI: ``image_0/000000.png ...``, ``calib.txt`` (P0..P3), optional ``times.txt`` and ``poses.txt``
+  (row-major 3x4 camera-to-world per frame).
+- TUM RGB-D: ``rgb/<timestamp>.png``, optional ``groundtruth.txt`` (``t tx ty tz qx qy qz qw``); TUM ships
+  no calibration file, so ``calib`` names a file or the preset ``tum-fr2`` (chosen automatically when the
+  folder name says fr2 / freiburg2).
+- Anything else: a folder of images plus a calibration file.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from vo_runtime.camera import Camera, load_camera
+from vo_runtime.errors import CalibrationError, VORuntimeError
+from vo_runtime.sequence import frame_timestamps, list_frames
+
+# TUM RGB-D "freiburg2" RGB intrinsics (OpenCV distortion order), from the dataset's calibration page.
+CAMERA_PRESETS = {
+    "tum-fr2": Camera(fx=520.908620, fy=521.007327, cx=325.141442, cy=249.701764,
+                      dist=(0.231222, -0.784899, -0.003257, -0.000105, 0.917205), width=640, height=480),
+}
+
+
+@dataclass
+class Sequence:
+    """Frames in order, their timestamps, the camera, and the ground-truth file if there is one."""
+
+    layout: str                 # "kitti", "tum" or "folder"
+    frames: list[Path]
+    timestamps: list[float]
+    camera: Camera
+    groundtruth: Path | None    # KITTI poses.txt or TUM groundtruth.txt
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+
+def resolve_camera(calib: str | Path, camera: int = 0) -> Camera:
+    """A calibration file (KITTI calib.txt or JSON) or a preset name from `CAMERA_PRESETS`."""
+    if str(calib) in CAMERA_PRESETS:
+        return CAMERA_PRESETS[str(calib)]
+    if not Path(calib).is_file():
+        raise CalibrationError(f"calibration not found: {calib} (a file, or one of {', '.join(CAMERA_PRESETS)})")
+    return load_camera(calib, camera)
+
+
+def open_sequence(path: str | Path, calib: str | Path | None = None, camera: int = 0) -> Sequence:
+    """Open a sequence folder (or a folder of images inside one) and detect its layout."""
+    root = Path(path)
+    if not root.is_dir():
+        raise VORuntimeError(f"sequence folder not found: {root}")
+    if root.name.startswith("image_") and (root.parent / "calib.txt").is_file():
+        root = root.parent
+    if root.name == "rgb" and (root.parent / "groundtruth.txt").is_file():
+        root = root.parent
+    kitti_images = root / f"image_{camera}"
+    if (root / "calib.txt").is_file() and kitti_images.is_dir():
+        frames = list_frames(kitti_images)
+        times = root / "times.txt"
+        return Sequence(
+            "kitti", frames, frame_timestamps(frames, times if times.is_file() else None),
+            resolve_camera(calib if calib is not None else root / "calib.txt", camera),
+            root / "poses.txt" if (root / "poses.txt").is_file() else None,
+        )
+    if (root / "rgb").is_dir():
+        frames = list_frames(root / "rgb")
+        if calib is None:
+            if "fr2" not in root.name and "freiburg2" not in root.name:
+                raise CalibrationError(f"{root} is a TUM sequence without a known camera: pass a calibration")
+            calib = "tum-fr2"
+        groundtruth = root / "groundtruth.txt"
+        return Sequence("tum", frames, frame_timestamps(frames), resolve_camera(calib, camera),
+                        groundtruth if groundtruth.is_file() else None)
+    if calib is None:
+        raise CalibrationError(f"{root} has no calib.txt: pass a calibration file")
+    frames = list_frames(root)
+    return Sequence("folder", frames, frame_timestamps(frames), resolve_camera(calib, camera), None)

@@ -1,0 +1,88 @@
+"""Trajectory accuracy against ground truth through evo (ATE and RPE after Sim(3) alignment), and a plot.
+
+evo and matplotlib are imported only here, so the runtime itself needs neither.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+from typing import Sequence as Seq
+
+import numpy as np
+
+from vo_runtime.errors import VORuntimeError
+from vo_runtime.odometry import INITIALISING, VOResult
+
+
+def _ground_truth(path: Path, layout: str, timestamps: Seq[float]) -> Any:
+    from evo.core.trajectory import PoseTrajectory3D
+    from evo.tools import file_interface
+
+    if layout == "tum":
+        return file_interface.read_tum_trajectory_file(str(path))
+    rows = np.loadtxt(path, ndmin=2)
+    if rows.shape[1] != 12:
+        raise VORuntimeError(f"{path}: expected 12 values a line (KITTI 3x4 poses), got {rows.shape[1]}")
+    if len(rows) < len(timestamps):
+        raise VORuntimeError(f"{path} has {len(rows)} poses for {len(timestamps)} frames")
+    poses = np.tile(np.eye(4), (len(timestamps), 1, 1))
+    poses[:, :3, :] = rows[: len(timestamps)].reshape(-1, 3, 4)
+    return PoseTrajectory3D(poses_se3=list(poses), timestamps=np.asarray(timestamps, float))
+
+
+def evaluate(results: Seq[VOResult], groundtruth: str | Path, layout: str, timestamps: Seq[float]) -> dict[str, Any]:
+    """ATE RMSE and RPE RMSE (1-frame translation, metres) of the frames past initialisation.
+
+    The estimate is aligned to the ground truth by Sim(3) (Umeyama with scale), as monocular VO needs.
+    ``layout`` is "kitti" (poses.txt, one per frame, with ``timestamps``) or "tum" (groundtruth.txt,
+    associated by nearest timestamp within 10 ms).
+    """
+    from evo.core import metrics, sync
+    from evo.core.geometry import GeometryException
+    from evo.core.trajectory import PoseTrajectory3D
+
+    used = [r for r in results if r.status != INITIALISING]
+    if len(used) < 3:
+        raise VORuntimeError(f"only {len(used)} frames past initialisation: nothing to evaluate")
+    stamps = np.array([timestamps[r.index] for r in used], float)
+    est = PoseTrajectory3D(poses_se3=[r.pose for r in used], timestamps=stamps)
+    ref = _ground_truth(Path(groundtruth), layout, timestamps)
+    ref, est = sync.associate_trajectories(ref, est, max_diff=0.01)
+    try:
+        _, _, scale = est.align(ref, correct_scale=True)
+    except GeometryException:
+        raise VORuntimeError("the estimated trajectory is degenerate (no motion tracked): no Sim(3) alignment") \
+            from None
+    ate = metrics.APE(metrics.PoseRelation.translation_part)
+    ate.process_data((ref, est))
+    rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta=1, delta_unit=metrics.Unit.frames, all_pairs=False)
+    rpe.process_data((ref, est))
+    return {
+        "frames_evaluated": int(est.num_poses),
+        "path_length_m": round(float(ref.path_length), 3),
+        "ate_rmse_m": round(float(ate.get_statistic(metrics.StatisticsType.rmse)), 4),
+        "rpe_rmse_m": round(float(rpe.get_statistic(metrics.StatisticsType.rmse)), 4),
+        "sim3_scale": round(float(scale), 4),
+        "_aligned": (est, ref),
+    }
+
+
+def plot_trajectory(path: str | Path, report: dict[str, Any], title: str) -> None:
+    """PNG of the aligned estimate against ground truth, top view (x-z, camera y points down)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    est, ref = report["_aligned"]
+    fig, ax = plt.subplots(figsize=(6, 6), dpi=100)
+    ax.plot(ref.positions_xyz[:, 0], ref.positions_xyz[:, 2], "k-", label="ground truth")
+    ax.plot(est.positions_xyz[:, 0], est.positions_xyz[:, 2], "r.-", markersize=3, label="VO (Sim(3) aligned)")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("z [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title(f"{title}\nATE {report['ate_rmse_m']:.3f} m, RPE {report['rpe_rmse_m']:.3f} m")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

@@ -1,0 +1,71 @@
+"""Small pose helpers (4x4 homogeneous transforms, float64)."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def make_pose(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, :3] = rotation
+    pose[:3, 3] = np.asarray(translation, dtype=np.float64).reshape(3)
+    return pose
+
+
+def invert_pose(pose: np.ndarray) -> np.ndarray:
+    rotation = pose[:3, :3]
+    return make_pose(rotation.T, -rotation.T @ pose[:3, 3])
+
+
+def pose_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    return make_pose(cv2.Rodrigues(np.asarray(rvec, dtype=np.float64))[0], tvec)
+
+
+
+def rvec_from_pose(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """4x4 world-to-camera pose -> OpenCV (rvec [3, 1], tvec [3, 1])."""
+    return cv2.Rodrigues(pose[:3, :3])[0], pose[:3, 3].reshape(3, 1).copy()
+
+
+def rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
+    """3x3 rotation -> unit quaternion (x, y, z, w) with w >= 0."""
+    m = np.asarray(rotation, dtype=np.float64)
+    trace = np.trace(m)
+    if trace > 0:
+        s = 2.0 * np.sqrt(trace + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+        q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
+        q[i] = 0.25 * s
+        q[j] = (m[j, i] + m[i, j]) / s
+        q[k] = (m[k, i] + m[i, k]) / s
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def triangulate(
+    pose_a: np.ndarray, pose_b: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Triangulate normalised points seen from two world-to-camera poses.
+
+    Returns world points [N, 3] and, per point, the largest reprojection error in the two views (normalised
+    units; infinite where the point lies behind either camera).
+    """
+    if len(pts_a) == 0:
+        return np.zeros((0, 3)), np.zeros(0)
+    homog = cv2.triangulatePoints(pose_a[:3], pose_b[:3], pts_a.T.astype(np.float64), pts_b.T.astype(np.float64))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        world = (homog[:3] / homog[3]).T
+    error = np.zeros(len(world))
+    for pose, pts in ((pose_a, pts_a), (pose_b, pts_b)):
+        cam = world @ pose[:3, :3].T + pose[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            proj = cam[:, :2] / cam[:, 2:3]
+            err = np.linalg.norm(proj - pts, axis=1)
+        err[~(cam[:, 2] > 0)] = np.inf
+        error = np.maximum(error, np.where(np.isnan(err), np.inf, err))
+    return world, error

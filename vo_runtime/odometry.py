@@ -1,0 +1,386 @@
+"""`MonoVO` / `VisualOdometry`: a monocular visual odometry on top of any keypoint extractor.
+
+Each frame's keypoints are matched (mutual nearest neighbour on descriptors) to the previous frame's, which
+extends feature tracks. Every track remembers where it began (frame and image point) and, once triangulated,
+its 3D landmark. Per frame:
+
+- before a map exists: once the tracks that began at the reference frame have moved far enough, initialise
+  from a homography or an essential matrix, whichever scores better (`twoview.py`), and triangulate; the
+  first baseline sets the unit of length (``VOConfig.initial_baseline``);
+- once a map exists: PnP RANSAC against the tracked landmarks (constant-velocity prediction as the fallback
+  seed) gives the pose, which keeps one scale along the sequence. PnP outliers lose their landmark. Tracks
+  whose rays (first view vs this view) are far enough apart are triangulated; landmarks are re-triangulated
+  when their ray angle has doubled since. Every few frames a sliding-window bundle adjustment refines the
+  recent poses and points and culls points that stay far off (`bundle.py`);
+- if PnP fails the frame is ``lost``: the pose is held, the tracks restart from this frame and the next
+  initialisation is scaled by the speed measured so far (status ``reinitialised``).
+
+Poses are camera-to-world 4x4 matrices; the world is the first frame's camera (x right, y down, z forward),
+in units of the first baseline (monocular VO cannot observe metric scale).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from vo_runtime.bundle import SlidingWindow
+from vo_runtime.camera import Camera
+from vo_runtime.errors import VORuntimeError
+from vo_runtime.features import FeatureExtractor, Features
+from vo_runtime.geometry import invert_pose, make_pose, pose_from_rvec, rvec_from_pose, triangulate
+from vo_runtime.matching import match_mutual_nn
+from vo_runtime.twoview import relative_pose_hypotheses
+
+INITIALISING, TRACKING, REINITIALISED, LOST = "initialising", "tracking", "reinitialised", "lost"
+
+
+@dataclass
+class VOConfig:
+    """Tuning knobs. Pixel thresholds are in the frame's pixels; angles in degrees."""
+
+    match_max_distance: float = 0.9      # L2 between unit descriptors (0..2)
+    match_ratio: float | None = 0.9      # Lowe ratio on distances; None disables
+    min_features: int = 30               # fewer detections: the frame is not used
+    min_matches: int = 30                # correspondences an (re)initialisation needs
+    min_pnp_inliers: int = 20            # PnP needs this many inliers to be trusted
+    ransac_threshold_px: float = 1.0     # essential-matrix RANSAC (Sampson distance)
+    pnp_threshold_px: float = 3.0        # PnP RANSAC reprojection error
+    triangulation_threshold_px: float = 3.0  # largest reprojection error of a new landmark in either view
+    init_min_parallax_px: float = 15.0   # median track motion before a two-view initialisation is tried
+    init_min_landmarks: int = 40         # triangulated points an initialisation must produce
+    min_triangulation_deg: float = 1.0   # rays closer than this give no landmark
+    refresh_factor: float = 2.0          # re-triangulate a landmark when its ray angle grew by this factor
+    ba_window: int = 8                   # frames in the local bundle adjustment (0: none)
+    ba_every: int = 4                    # run it every this many tracked frames
+    initial_baseline: float = 1.0        # length of the first baseline, in output units
+
+    def __post_init__(self) -> None:
+        if self.min_matches < 8 or self.min_pnp_inliers < 6:
+            raise VORuntimeError("min_matches must be >= 8 and min_pnp_inliers >= 6")
+        if self.initial_baseline <= 0:
+            raise VORuntimeError("initial_baseline must be positive")
+
+
+@dataclass
+class VOResult:
+    """Outcome of one frame. ``pose`` is camera-to-world (4x4)."""
+
+    index: int
+    timestamp: float | None
+    pose: np.ndarray
+    status: str
+    num_features: int
+    num_matches: int      # matched to the previous frame
+    num_inliers: int      # PnP or essential-matrix inliers
+    num_landmarks: int    # tracked keypoints of this frame that carry a landmark
+    extract_ms: float
+    track_ms: float
+
+
+class _Tracks:
+    """Per-keypoint track state, row-aligned with one frame's keypoints."""
+
+    def __init__(self, frame_index: int, points: np.ndarray, pixels: np.ndarray) -> None:
+        n = len(points)
+        self.points = points                      # this frame, normalised image plane [N, 2]
+        self.pixels = pixels                      # this frame, pixels [N, 2]
+        self.first_points = points.copy()         # where each track began (normalised)
+        self.first_pixels = pixels.copy()
+        self.first_frame = np.full(n, frame_index)
+        self.landmarks = np.full((n, 3), np.nan)  # world points, NaN where none
+        self.angles = np.zeros(n)                 # ray angle when last triangulated (degrees)
+        self.ids = _track_ids(frame_index, np.arange(n))  # unique per track, for bundle adjustment
+
+    def extend(self, previous: "_Tracks", matches: np.ndarray) -> None:
+        """Carry matched tracks over from the previous frame (matches: prev row, this row)."""
+        i, j = matches[:, 0], matches[:, 1]
+        for name in ("first_points", "first_pixels", "first_frame", "landmarks", "angles", "ids"):
+            getattr(self, name)[j] = getattr(previous, name)[i]
+
+    def restart(self, rows: np.ndarray, frame_index: int) -> None:
+        """Make `rows` begin afresh at this frame, without landmarks."""
+        self.first_points[rows] = self.points[rows]
+        self.first_pixels[rows] = self.pixels[rows]
+        self.first_frame[rows] = frame_index
+        self.landmarks[rows] = np.nan
+        self.angles[rows] = 0.0
+        self.ids[rows] = _track_ids(frame_index, rows)
+
+    @property
+    def has_landmark(self) -> np.ndarray:
+        return ~np.isnan(self.landmarks[:, 0])
+
+
+class MonoVO:
+    """Monocular VO over a stream of frames.
+
+    Args:
+        extractor: callable image -> `Features` (e.g. `FeatureExtractor` on an artefact, or `OrbExtractor`).
+        camera: intrinsics of the frames passed to `process`.
+        config: `VOConfig`; the defaults suit 10 Hz driving and hand-held indoor sequences.
+    """
+
+    def __init__(self, extractor: Callable[[np.ndarray], Features], camera: Camera, config: VOConfig | None = None):
+        self.extractor = extractor
+        self.camera = camera
+        self.config = config or VOConfig()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the map and the trajectory; the next frame becomes the origin."""
+        self.results: list[VOResult] = []
+        self._poses_cw: list[np.ndarray] = []  # world-to-camera, one per processed frame
+        self._previous: tuple[Features, _Tracks] | None = None
+        self._reference = 0                    # frame the next initialisation measures from
+        self._initialised = False             # a scale has been fixed (first initialisation done)
+        self._mapped = False                  # landmarks exist to track against (false again after a loss)
+        self._speed: float | None = None       # world units per frame, from the last PnP step
+        self._window = SlidingWindow(self.config.ba_window)
+        self.init_model: str | None = None     # model of the last (re)initialisation: essential or homography
+
+    # ------------------------------------------------------------------ public
+    def process(self, image: np.ndarray, timestamp: float | None = None) -> VOResult:
+        """Track one frame (HxW gray or HxWx3 BGR) and return its pose and statistics."""
+        if not isinstance(image, np.ndarray) or image.ndim not in (2, 3):
+            raise VORuntimeError("expected an HxW or HxWx3 image array")
+        self.camera.check_frame(*image.shape[:2])
+        index = len(self.results)
+        start = time.perf_counter()
+        features = self.extractor(image)
+        extracted = time.perf_counter()
+        tracks = _Tracks(index, self.camera.normalise(features.keypoints), np.asarray(features.keypoints, np.float64))
+        status, matches, inliers = self._track(index, features, tracks)
+        result = VOResult(
+            index=index, timestamp=timestamp, pose=invert_pose(self._poses_cw[index]), status=status,
+            num_features=len(features), num_matches=matches, num_inliers=inliers,
+            num_landmarks=int(np.count_nonzero(tracks.has_landmark)),
+            extract_ms=1e3 * (extracted - start), track_ms=1e3 * (time.perf_counter() - extracted),
+        )
+        self.results.append(result)
+        return result
+
+    # ------------------------------------------------------------------ tracking
+    def _track(self, index: int, features: Features, tracks: _Tracks) -> tuple[str, int, int]:
+        """Set this frame's pose (held until something better is known); return (status, matches, inliers)."""
+        cfg = self.config
+        self._poses_cw.append(self._poses_cw[-1].copy() if self._poses_cw else np.eye(4))
+        failed = LOST if self._initialised else INITIALISING
+        if self._previous is None:
+            self._reference = index
+            self._previous = (features, tracks)
+            return INITIALISING, 0, 0
+        if len(features) < cfg.min_features:
+            return failed, 0, 0  # skip the frame: the next one is matched to the previous good frame
+        prev_features, prev_tracks = self._previous
+        self._previous = (features, tracks)
+        matches = match_mutual_nn(prev_features.descriptors, features.descriptors, cfg.match_max_distance,
+                                  cfg.match_ratio)
+        tracks.extend(prev_tracks, matches)
+        if self._mapped:
+            inliers = self._track_pnp(index, tracks)
+            if inliers is not None:
+                self._triangulate(index, tracks)
+                self._window_add(index, tracks.ids, tracks.points, tracks.landmarks, tracks.has_landmark)
+                if cfg.ba_window and index % cfg.ba_every == 0:
+                    self._local_bundle_adjustment(tracks)
+                return TRACKING, len(matches), inliers
+            # Lost: hold the pose and measure the next initialisation from here.
+            self._mapped = False
+            self._window.clear()
+            self._reference = index
+            tracks.restart(np.arange(len(tracks.points)), index)
+            return LOST, len(matches), 0
+        count = self._initialise(index, tracks)
+        if count is None:
+            return failed, len(matches), 0
+        status = REINITIALISED if self._initialised else TRACKING
+        self._initialised = self._mapped = True
+        return status, len(matches), count
+
+    def _track_pnp(self, index: int, tracks: _Tracks) -> int | None:
+        """PnP against the tracked landmarks; on success set this frame's pose and return the inlier count."""
+        cfg = self.config
+        rows = np.flatnonzero(tracks.has_landmark)
+        if len(rows) < cfg.min_pnp_inliers:
+            return None
+        world = tracks.landmarks[rows]
+        image = tracks.points[rows]
+        threshold = cfg.pnp_threshold_px / self.camera.focal
+        # No extrinsic guess for RANSAC: OpenCV 5.0's RANSAC with SOLVEPNP_ITERATIVE + useExtrinsicGuess
+        # returned the guess with every point flagged inlier (median error ~90 px on noise-free data).
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            world, image, np.eye(3), None, iterationsCount=200, reprojectionError=threshold, confidence=0.999,
+            flags=cv2.SOLVEPNP_SQPNP,
+        )
+        if not ok or inl is None or len(inl) < cfg.min_pnp_inliers:
+            # RANSAC found no consensus (few or noisy landmarks): start from the constant-velocity
+            # prediction instead, keep what it explains within twice the threshold, refine, and re-gate.
+            last = self._poses_cw[index - 1]
+            before = self._poses_cw[index - 2] if index >= 2 else last
+            rvec, tvec = rvec_from_pose(last @ invert_pose(before) @ last)
+            inl = np.flatnonzero(_reprojection_errors(world, image, rvec, tvec) < 2 * threshold)
+            if len(inl) < cfg.min_pnp_inliers:
+                return None
+            rvec, tvec = cv2.solvePnPRefineLM(world[inl], image[inl], np.eye(3), None, rvec, tvec)
+            inl = np.flatnonzero(_reprojection_errors(world, image, rvec, tvec) < threshold)
+            if len(inl) < cfg.min_pnp_inliers:
+                return None
+        inl = inl.ravel()
+        rvec, tvec = cv2.solvePnPRefineLM(world[inl], image[inl], np.eye(3), None, rvec, tvec)
+        pose = pose_from_rvec(rvec, tvec)
+        self._speed = float(np.linalg.norm(_centre(pose) - _centre(self._poses_cw[index - 1])))
+        self._poses_cw[index] = pose
+        outliers = np.setdiff1d(rows, rows[inl])
+        tracks.landmarks[outliers] = np.nan
+        tracks.angles[outliers] = 0.0
+        return len(inl)
+
+    def _initialise(self, index: int, tracks: _Tracks) -> int | None:
+        """Two-view initialisation from the reference frame. Returns the inlier count, or None (not yet)."""
+        cfg = self.config
+        rows = np.flatnonzero(tracks.first_frame == self._reference)
+        if len(rows) < cfg.min_matches:
+            # Too few tracks survive from the reference: measure from this frame instead.
+            self._poses_cw[index] = self._poses_cw[self._reference].copy()
+            self._reference = index
+            tracks.restart(np.arange(len(tracks.points)), index)
+            return None
+        motion = np.median(np.linalg.norm(tracks.pixels[rows] - tracks.first_pixels[rows], axis=1))
+        # Tracks from the reference die off, and the survivors are the slow, distant points: when few are
+        # left, try with less motion rather than lose the reference (the landmark checks below still apply).
+        dying = len(rows) < 3 * cfg.min_matches
+        if motion < (cfg.init_min_parallax_px / 3 if dying else cfg.init_min_parallax_px):
+            return None
+        pts_ref, pts_cur = tracks.first_points[rows], tracks.points[rows]
+        if self._initialised:  # re-initialisation after a loss: keep the speed measured before it
+            scale = (self._speed or cfg.initial_baseline) * (index - self._reference)
+        else:
+            scale = cfg.initial_baseline
+        ref_pose = self._poses_cw[self._reference]
+        # Keep the hypothesis that triangulates the most points (in front, small error, enough parallax).
+        best = []
+        for hypothesis in relative_pose_hypotheses(pts_ref, pts_cur, cfg.ransac_threshold_px / self.camera.focal):
+            if np.count_nonzero(hypothesis.inliers) < cfg.init_min_landmarks:
+                continue
+            pose = make_pose(hypothesis.rotation, scale * hypothesis.translation) @ ref_pose
+            inliers = rows[hypothesis.inliers]
+            world, error = triangulate(ref_pose, pose, pts_ref[hypothesis.inliers], pts_cur[hypothesis.inliers])
+            angles = _ray_angles(ref_pose, pose, tracks.first_points[inliers], tracks.points[inliers])
+            good = (error < cfg.triangulation_threshold_px / self.camera.focal) & (angles >= cfg.min_triangulation_deg)
+            best.append((int(np.count_nonzero(good)), hypothesis.model, pose, inliers, world, angles, good))
+        best.sort(key=lambda item: -item[0])
+        if not best or best[0][0] < cfg.init_min_landmarks:
+            return None
+        if len(best) > 1 and best[1][0] > 0.75 * best[0][0]:
+            return None  # ambiguous homography decomposition: wait for more motion
+        _, self.init_model, pose, inliers, world, angles, good = best[0]
+        self._poses_cw[index] = pose
+        # Tracks that began after the reference frame began at a held (unknown) pose: restart them here.
+        tracks.restart(np.flatnonzero(tracks.first_frame != self._reference), index)
+        tracks.landmarks[inliers[good]] = world[good]
+        tracks.angles[inliers[good]] = angles[good]
+        # The window starts with the two views of the initialisation (both held fixed in adjustment).
+        self._window.clear()
+        seen = tracks.has_landmark
+        self._window_add(self._reference, tracks.ids, tracks.first_points, tracks.landmarks, seen)
+        self._window_add(index, tracks.ids, tracks.points, tracks.landmarks, seen)
+        self._speed = scale / (index - self._reference)
+        return len(inliers)
+
+    def _window_add(self, index: int, ids: np.ndarray, points: np.ndarray, landmarks: np.ndarray,
+                    rows: np.ndarray) -> None:
+        if self.config.ba_window:
+            self._window.add(index, ids[rows], points[rows], landmarks[rows])
+
+    def _local_bundle_adjustment(self, tracks: _Tracks) -> None:
+        """Refine the window's poses and points; update this frame's landmarks and drop the bad ones."""
+        cfg = self.config
+        seen = np.flatnonzero(tracks.has_landmark)
+        outcome = self._window.adjust(self._poses_cw, self.camera.focal, gate_px=4 * cfg.pnp_threshold_px,
+                                      cull_px=cfg.triangulation_threshold_px,
+                                      current=(tracks.ids[seen], tracks.landmarks[seen]))
+        if outcome is None:
+            return
+        poses, points, culled = outcome
+        for frame, pose in poses.items():
+            self._poses_cw[frame] = pose
+            if frame < len(self.results):  # frames already reported get the refined pose too
+                self.results[frame].pose = invert_pose(pose)
+        for row in seen:
+            landmark_id = int(tracks.ids[row])
+            if landmark_id in points:
+                tracks.landmarks[row] = points[landmark_id]
+            elif landmark_id in culled:
+                tracks.landmarks[row] = np.nan
+                tracks.angles[row] = 0.0
+
+    def _triangulate(self, index: int, tracks: _Tracks) -> None:
+        """Triangulate tracks whose rays are far enough apart, and refresh landmarks whose angle doubled."""
+        cfg = self.config
+        candidates = np.flatnonzero(tracks.first_frame < index)
+        if len(candidates) == 0:
+            return
+        pose = self._poses_cw[index]
+        first_poses = np.stack([self._poses_cw[f] for f in tracks.first_frame[candidates]])
+        angles = _ray_angles(first_poses, pose, tracks.first_points[candidates], tracks.points[candidates])
+        due = (angles >= cfg.min_triangulation_deg) & (angles >= cfg.refresh_factor * tracks.angles[candidates])
+        for first in np.unique(tracks.first_frame[candidates[due]]):
+            pick = due & (tracks.first_frame[candidates] == first)
+            rows = candidates[pick]
+            world, error = triangulate(self._poses_cw[first], pose, tracks.first_points[rows], tracks.points[rows])
+            good = error < cfg.triangulation_threshold_px / self.camera.focal
+            tracks.landmarks[rows[good]] = world[good]
+            tracks.angles[rows[good]] = angles[pick][good]
+
+
+def _track_ids(frame_index: int, rows: np.ndarray) -> np.ndarray:
+    """Track ids unique over a sequence: the frame a track (re)started in, and its row there."""
+    return (np.int64(frame_index) << 20) | np.asarray(rows, np.int64)
+
+
+def _reprojection_errors(world: np.ndarray, image: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """Normalised-plane reprojection errors [N] of world points [N, 3] against observations [N, 2]."""
+    cam = world @ cv2.Rodrigues(rvec)[0].T + tvec.reshape(3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.linalg.norm(cam[:, :2] / cam[:, 2:] - image, axis=1)
+    return np.where(cam[:, 2] > 0, np.nan_to_num(err, nan=np.inf), np.inf)
+
+
+def _centre(pose_cw: np.ndarray) -> np.ndarray:
+    return -pose_cw[:3, :3].T @ pose_cw[:3, 3]
+
+
+def _ray_angles(poses_a: np.ndarray, pose_b: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
+    """Angle (degrees) between the world-frame viewing rays of normalised points seen from two poses.
+
+    ``poses_a`` is one world-to-camera pose or one per point ([N, 4, 4]).
+    """
+    rays_a = np.concatenate([pts_a, np.ones((len(pts_a), 1))], axis=1)
+    rays_b = np.concatenate([pts_b, np.ones((len(pts_b), 1))], axis=1)
+    rot_a = np.asarray(poses_a)[..., :3, :3]
+    world_a = np.einsum("...ji,...j->...i", rot_a, rays_a) if rot_a.ndim == 3 else rays_a @ rot_a
+    world_b = rays_b @ pose_b[:3, :3]
+    cos = np.sum(world_a * world_b, axis=1) / (np.linalg.norm(world_a, axis=1) * np.linalg.norm(world_b, axis=1))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+class VisualOdometry(MonoVO):
+    """The embedding API: ``vo = VisualOdometry(artefact, camera)``, then ``vo.track(image, timestamp)``.
+
+    ``artefact`` is an artefact directory (run by `FeatureExtractor` with ``threads`` onnxruntime threads) or
+    any callable image -> `Features` (e.g. `OrbExtractor`).
+    """
+
+    def __init__(self, artefact: str | Path | Callable[[np.ndarray], Features], camera: Camera,
+                 config: VOConfig | None = None, threads: int = 1) -> None:
+        extractor = artefact if callable(artefact) else FeatureExtractor(artefact, threads=threads)
+        super().__init__(extractor, camera, config)
+
+    def track(self, image: np.ndarray, timestamp: float | None = None) -> VOResult:
+        """Pose (camera-to-world), state and counts for one frame; see `MonoVO.process`."""
+        return self.process(image, timestamp)

@@ -1,0 +1,51 @@
+"""Reading an image sequence from a folder (frames sorted by name) with optional timestamps."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from vo_runtime.errors import VORuntimeError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff")
+
+
+def list_frames(folder: str | Path) -> list[Path]:
+    """Image files of a folder, sorted by name (KITTI ``000000.png``, TUM ``<timestamp>.png``)."""
+    directory = Path(folder)
+    if not directory.is_dir():
+        raise VORuntimeError(f"frame folder not found: {directory}")
+    frames = sorted(p for p in directory.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not frames:
+        raise VORuntimeError(f"{directory} holds no images ({', '.join(IMAGE_SUFFIXES)})")
+    return frames
+
+
+def frame_timestamps(frames: list[Path], times_file: str | Path | None = None) -> list[float]:
+    """One timestamp per frame: from ``times_file`` (one number a line, KITTI ``times.txt``), else from
+    file names that are numbers (TUM), else the frame index."""
+    if times_file is not None:
+        try:
+            times = [float(line.split()[0]) for line in Path(times_file).read_text().splitlines() if line.strip()]
+        except (OSError, ValueError, IndexError) as exc:
+            raise VORuntimeError(f"cannot read timestamps from {times_file} ({exc.__class__.__name__})") from None
+        if len(times) < len(frames):
+            raise VORuntimeError(f"{times_file} has {len(times)} timestamps for {len(frames)} frames")
+        return times[: len(frames)]
+    try:
+        return [float(p.stem) for p in frames]
+    except ValueError:
+        return [float(i) for i in range(len(frames))]
+
+
+def read_frames(frames: list[Path]) -> Iterator[np.ndarray]:
+    """Yield each frame as loaded by OpenCV (gray stays gray, colour is BGR)."""
+    for path in frames:
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise VORuntimeError(f"cannot decode image {path}")
+        if image.ndim == 3 and image.shape[2] == 4:
+            image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+        yield image
