@@ -211,3 +211,26 @@ def test_result_fields():
     assert last.num_features > last.num_matches > 0 and last.num_inliers > 0 and last.num_landmarks > 0
     assert last.extract_ms >= 0 and last.track_ms > 0
     assert last.pose.shape == (4, 4)
+
+
+def test_runtime_never_imports_torch():
+    import subprocess
+    import sys
+
+    probe = ("import sys, vo_runtime, vo_runtime.cli, vo_runtime.odometry, vo_runtime.evaluate, vo_runtime.datasets; "
+             "print('torch' in sys.modules)")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert result.stdout.strip() == "False"
+
+
+def test_keyframes_follow_the_gap_and_the_view_change():
+    poses = straight_then_turn(60)
+    periodic = run(SyntheticExtractor(poses), 60, VOConfig(keyframe_max_gap=5))
+    keyframes = [r.index for r in periodic.results if r.keyframe]
+    first = tracked(periodic)[0]
+    assert keyframes[0] == first  # the initialisation frame is the first keyframe
+    assert np.diff(keyframes).max() == 5 and np.diff(keyframes).min() >= 1
+    # With the view-change trigger a keyframe comes sooner once the last keyframe's landmarks leave view.
+    eager = run(SyntheticExtractor(poses), 60, VOConfig(keyframe_max_gap=50, keyframe_track_ratio=0.95))
+    eager_keyframes = [r.index for r in eager.results if r.keyframe]
+    assert len(eager_keyframes) > 2 and np.diff(eager_keyframes).max() < 50

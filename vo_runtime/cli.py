@@ -144,7 +144,7 @@ def _write_outputs(output: Path, results: list, summary: dict[str, Any], report:
         write_trajectory(staging / "trajectory_tum.txt", results, "tum")
         write_trajectory(staging / "trajectory_kitti.txt", results, "kitti")
         frames = [{"index": r.index, "timestamp": r.timestamp, "state": r.status, "features": r.num_features,
-                   "matches": r.num_matches, "inliers": r.num_inliers, "landmarks": r.num_landmarks,
+                   "matches": r.num_matches, "inliers": r.num_inliers, "landmarks": r.num_landmarks, "keyframe": r.keyframe,
                    "extract_ms": round(r.extract_ms, 3), "track_ms": round(r.track_ms, 3)} for r in results]
         (staging / "frames.json").write_text(json.dumps(frames, indent=1))
         (staging / "summary.json").write_text(json.dumps(summary, indent=2))

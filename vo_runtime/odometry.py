@@ -10,8 +10,11 @@ its 3D landmark. Per frame:
 - once a map exists: PnP RANSAC against the tracked landmarks (constant-velocity prediction as the fallback
   seed) gives the pose, which keeps one scale along the sequence. PnP outliers lose their landmark. Tracks
   whose rays (first view vs this view) are far enough apart are triangulated; landmarks are re-triangulated
-  when their ray angle has doubled since. Every few frames a sliding-window bundle adjustment refines the
-  recent poses and points and culls points that stay far off (`bundle.py`);
+  when their ray angle has doubled since. Every tracked frame's observations join a sliding window of
+  the last ``ba_window`` frames. A tracked frame becomes a keyframe when ``keyframe_max_gap`` frames have
+  passed or it sees fewer than ``keyframe_track_ratio`` of the last keyframe's landmarks; each keyframe
+  runs the local bundle adjustment, which refines the window's poses and points and culls points that stay
+  far off (`bundle.py`);
 - if PnP fails the frame is ``lost``: the pose is held, the tracks restart from this frame and the next
   initialisation is scaled by the speed measured so far (status ``reinitialised``).
 
@@ -56,7 +59,12 @@ class VOConfig:
     min_triangulation_deg: float = 1.0   # rays closer than this give no landmark
     refresh_factor: float = 2.0          # re-triangulate a landmark when its ray angle grew by this factor
     ba_window: int = 8                   # frames in the local bundle adjustment (0: none)
-    ba_every: int = 4                    # run it every this many tracked frames
+    keyframe_max_gap: int = 4            # a tracked frame becomes a keyframe at least this often ...
+    # ... or when it still sees fewer than this share of the last keyframe's landmarks. Off by default:
+    # measured with ORB (docs/vo.md), 0.3-0.5 helped KITTI 06 (ATE 0.57 -> 0.03-0.06 m) but made the
+    # scale of KITTI 07 drift (0.31 -> 1.6-5.0 m): without guided matching tracks decay fast, so the
+    # trigger fires at turns, where adjusting a short window moves the scale most.
+    keyframe_track_ratio: float = 0.0
     initial_baseline: float = 1.0        # length of the first baseline, in output units
 
     def __post_init__(self) -> None:
@@ -80,6 +88,7 @@ class VOResult:
     num_landmarks: int    # tracked keypoints of this frame that carry a landmark
     extract_ms: float
     track_ms: float
+    keyframe: bool = False  # ran the local bundle adjustment
 
 
 class _Tracks:
@@ -142,6 +151,8 @@ class MonoVO:
         self._speed: float | None = None       # world units per frame, from the last PnP step
         self._window = SlidingWindow(self.config.ba_window)
         self.init_model: str | None = None     # model of the last (re)initialisation: essential or homography
+        self._keyframe = -1                    # index of the last keyframe
+        self._keyframe_ids = np.zeros(0, np.int64)  # track ids of the landmarks that keyframe saw
 
     # ------------------------------------------------------------------ public
     def process(self, image: np.ndarray, timestamp: float | None = None) -> VOResult:
@@ -158,7 +169,7 @@ class MonoVO:
         result = VOResult(
             index=index, timestamp=timestamp, pose=invert_pose(self._poses_cw[index]), status=status,
             num_features=len(features), num_matches=matches, num_inliers=inliers,
-            num_landmarks=int(np.count_nonzero(tracks.has_landmark)),
+            num_landmarks=int(np.count_nonzero(tracks.has_landmark)), keyframe=self._keyframe == index,
             extract_ms=1e3 * (extracted - start), track_ms=1e3 * (time.perf_counter() - extracted),
         )
         self.results.append(result)
@@ -185,9 +196,12 @@ class MonoVO:
             inliers = self._track_pnp(index, tracks)
             if inliers is not None:
                 self._triangulate(index, tracks)
+                # Every tracked frame's observations enter the window (more views per point steadied the
+                # scale on KITTI); keyframes decide when the window is adjusted and culled.
                 self._window_add(index, tracks.ids, tracks.points, tracks.landmarks, tracks.has_landmark)
-                if cfg.ba_window and index % cfg.ba_every == 0:
+                if self._needs_keyframe(index, tracks):
                     self._local_bundle_adjustment(tracks)
+                    self._mark_keyframe(index, tracks)
                 return TRACKING, len(matches), inliers
             # Lost: hold the pose and measure the next initialisation from here.
             self._mapped = False
@@ -289,8 +303,21 @@ class MonoVO:
         seen = tracks.has_landmark
         self._window_add(self._reference, tracks.ids, tracks.first_points, tracks.landmarks, seen)
         self._window_add(index, tracks.ids, tracks.points, tracks.landmarks, seen)
+        self._mark_keyframe(index, tracks)
         self._speed = scale / (index - self._reference)
         return len(inliers)
+
+    def _needs_keyframe(self, index: int, tracks: _Tracks) -> bool:
+        """ORB-SLAM's two reasons, simplified: the view has moved on, or too long since the last keyframe."""
+        cfg = self.config
+        if index - self._keyframe >= cfg.keyframe_max_gap:
+            return True
+        still_seen = np.isin(tracks.ids[tracks.has_landmark], self._keyframe_ids).sum()
+        return still_seen < cfg.keyframe_track_ratio * len(self._keyframe_ids)
+
+    def _mark_keyframe(self, index: int, tracks: _Tracks) -> None:
+        self._keyframe = index
+        self._keyframe_ids = tracks.ids[tracks.has_landmark].copy()
 
     def _window_add(self, index: int, ids: np.ndarray, points: np.ndarray, landmarks: np.ndarray,
                     rows: np.ndarray) -> None:
@@ -300,6 +327,8 @@ class MonoVO:
     def _local_bundle_adjustment(self, tracks: _Tracks) -> None:
         """Refine the window's poses and points; update this frame's landmarks and drop the bad ones."""
         cfg = self.config
+        if not cfg.ba_window:
+            return
         seen = np.flatnonzero(tracks.has_landmark)
         outcome = self._window.adjust(self._poses_cw, self.camera.focal, gate_px=4 * cfg.pnp_threshold_px,
                                       cull_px=cfg.triangulation_threshold_px,
