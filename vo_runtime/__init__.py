@@ -1,6 +1,6 @@
 """vo_runtime: a minimal monocular VO that runs an exported EdgeFeat artefact.
 
-Depends on numpy, OpenCV and onnxruntime only (no torch).
+Depends on numpy, OpenCV, onnxruntime and scipy (bundle adjustment); never on torch.
 """
 from vo_runtime.camera import Camera, load_camera
 from vo_runtime.errors import ArtefactError, CalibrationError, VORuntimeError
