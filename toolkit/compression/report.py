@@ -123,13 +123,6 @@ def median_ms(run: Callable[[], object], repeats: int = 20, warmup: int = 3) -> 
 
 def interleaved_median_ms(runs: dict[str, Callable[[], object]], repeats: int = 20, warmup: int = 3) -> dict[str, float]:
     """Median ms of each callable, timed round-robin so machine-load swings hit all of them alike."""
-    for run in runs.values():
-        for _ in range(warmup):
-            run()
-    times: dict[str, list[float]] = {name: [] for name in runs}
-    for _ in range(repeats):
-        for name, run in runs.items():
-            tick = time.perf_counter()
-            run()
-            times[name].append((time.perf_counter() - tick) * 1e3)
-    return {name: statistics.median(values) for name, values in times.items()}
+    from toolkit.profiling.latency import time_interleaved
+
+    return {name: statistics.median(values) for name, values in time_interleaved(runs, repeats, warmup).items()}
