@@ -72,29 +72,31 @@ def _opencv_detection(keypoints: list, descriptors: np.ndarray | None, width: in
     return Detection(points, scores, descriptors.astype(dtype))
 
 
-def orb_detector(config: DetectorConfig, label: str = "ORB") -> Detector:
-    """OpenCV ORB, ``max_keypoints`` features, 256-bit descriptors compared by Hamming distance."""
-    orb = cv2.ORB_create(nfeatures=config.max_keypoints)
+def _opencv_detector(method: str, extractor: Any, width: int, dtype: type, descriptor: str,
+                     config: DetectorConfig, label: str) -> Detector:
+    """An OpenCV Feature2D as a `Detector`, capped to ``max_keypoints`` by response.
+
+    SIFT can return a few more points than asked (one point with several orientations), hence the cap.
+    """
 
     def detect(gray: np.ndarray) -> Detection:
-        keypoints, descriptors = orb.detectAndCompute(gray, None)
-        return top_k(_opencv_detection(list(keypoints), descriptors, 32, np.uint8), config.max_keypoints)
+        keypoints, descriptors = extractor.detectAndCompute(gray, None)
+        return top_k(_opencv_detection(list(keypoints), descriptors, width, dtype), config.max_keypoints)
 
-    return Detector(label, "opencv", detect, {"method": "orb", "max_keypoints": config.max_keypoints,
-                                              "descriptor": "binary-256 (Hamming)"})
+    return Detector(label, "opencv", detect, {"method": method, "max_keypoints": config.max_keypoints,
+                                              "descriptor": descriptor})
+
+
+def orb_detector(config: DetectorConfig, label: str = "ORB") -> Detector:
+    """OpenCV ORB, ``max_keypoints`` features, 256-bit descriptors compared by Hamming distance."""
+    return _opencv_detector("orb", cv2.ORB_create(nfeatures=config.max_keypoints), 32, np.uint8,
+                            "binary-256 (Hamming)", config, label)
 
 
 def sift_detector(config: DetectorConfig, label: str = "SIFT") -> Detector:
     """OpenCV SIFT, ``max_keypoints`` strongest features, 128-d float descriptors compared by L2."""
-    sift = cv2.SIFT_create(nfeatures=config.max_keypoints)
-
-    def detect(gray: np.ndarray) -> Detection:
-        keypoints, descriptors = sift.detectAndCompute(gray, None)
-        # SIFT can return a few more than asked (one point with several orientations): cap it like the rest.
-        return top_k(_opencv_detection(list(keypoints), descriptors, 128, np.float32), config.max_keypoints)
-
-    return Detector(label, "opencv", detect, {"method": "sift", "max_keypoints": config.max_keypoints,
-                                              "descriptor": "float-128 (L2)"})
+    return _opencv_detector("sift", cv2.SIFT_create(nfeatures=config.max_keypoints), 128, np.float32,
+                            "float-128 (L2)", config, label)
 
 
 def artefact_detector(directory: Path, config: DetectorConfig, label: str) -> Detector:
