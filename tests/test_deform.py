@@ -125,3 +125,36 @@ def test_half_precision_inputs_index_correctly():
     assert half.dtype == torch.bfloat16
     scale = reference.abs().max()
     assert (half.float() - reference).abs().max() / scale < 0.05
+
+
+@pytest.mark.parametrize("modulated", [True, False])
+def test_training_grid_sample_sampler_matches_the_reference_and_the_gather_gradients(modulated):
+    """The training-only grid_sample sampler gives the same values as the loop reference and the same
+    gradients as the gather sampler that the portable export uses (native is checked against both above)."""
+    from models.deform import deform_conv2d_grid_sample
+
+    x, offset, weight, bias, mask = random_case(7)
+    mask = mask if modulated else None
+    expected = reference_deform_conv(x.numpy(), offset.numpy(), weight.numpy(), bias.numpy(),
+                                     None if mask is None else mask.numpy())
+    got = deform_conv2d_grid_sample(x, offset, weight, bias, mask)
+    assert np.abs(got.detach().numpy() - expected).max() < 1e-4
+
+    inputs = [t.clone().requires_grad_(True) for t in (x, offset, weight, bias)]
+    gather = deform_conv2d(*inputs, mask, 1, 1, 1)
+    gather.square().sum().backward()
+    gather_grads = [t.grad.clone() for t in inputs]
+    inputs = [t.clone().detach().requires_grad_(True) for t in (x, offset, weight, bias)]
+    deform_conv2d_grid_sample(*inputs, mask).square().sum().backward()
+    for name, a, b in zip(("x", "offset", "weight", "bias"), gather_grads, [t.grad for t in inputs]):
+        assert torch.allclose(a, b, atol=1e-3, rtol=1e-4), name
+
+
+def test_deformable_conv_grid_sample_strategy_is_the_same_layer():
+    torch.manual_seed(0)
+    layer = DeformableConv(6, 5)
+    torch.nn.init.normal_(layer.offset_pw.weight, std=0.5)
+    x = torch.randn(2, 6, 9, 11)
+    expected = layer(x)
+    set_deform_strategy(layer, "grid_sample")
+    assert torch.allclose(layer(x), expected, atol=1e-4)

@@ -85,8 +85,12 @@ def _set_trace_mode(model: nn.Module, enabled: bool) -> None:
 
 
 def meaningful_output_layers(model: FeatureNet) -> list[nn.Module]:
-    """Layers whose output channels mean something fixed: the 65-logit and descriptor 1x1 convs."""
-    return [model.detector[-1], model.descriptor[-1]]
+    """Layers whose output channels mean something fixed: the 65-logit (detector and cell-pixel head) and
+    descriptor 1x1 convs."""
+    layers = [model.detector[-1], model.descriptor[-1]]
+    if model.config.pixel_head_channels:
+        layers.append(model.pixel_head.layers[-1])
+    return layers
 
 
 def kept_channels(channels: int, ratio: float, multiple: int = CHANNEL_MULTIPLE) -> int:
@@ -154,9 +158,16 @@ def config_of(model: FeatureNet) -> FeatureNetConfig:
         raise ToolkitError(f"pruned heads have unequal widths {sorted(heads)}; the config cannot express it")
     if base.deformable and model.deform.conv.out_channels != model.deform.conv.in_channels:
         raise ToolkitError("pruned deformable conv has unequal input and output widths; the config cannot express it")
+    pixel = 0
+    if base.pixel_head_channels:
+        pixel_widths = {model.pixel_head.layers[0].out_channels, model.pixel_head.layers[3].out_channels}
+        if len(pixel_widths) > 1:
+            raise ToolkitError(f"pruned cell-pixel head has unequal widths {sorted(pixel_widths)}; the config cannot express it")
+        pixel = pixel_widths.pop()
     return FeatureNetConfig(widths=widths, blocks=list(base.blocks), head_channels=heads.pop(),
                             descriptor_dim=base.descriptor_dim, activation=base.activation,
-                            deformable=base.deformable, modulated=base.modulated)
+                            deformable=base.deformable, modulated=base.modulated, deform_scale=base.deform_scale,
+                            pixel_head_channels=pixel)
 
 
 def rebuild(model: FeatureNet) -> FeatureNet:
