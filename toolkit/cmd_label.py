@@ -13,12 +13,14 @@ from tqdm import tqdm
 
 from toolkit.errors import ToolkitError
 from toolkit.sizes import parse_size
-from toolkit.training.adaptation import AdaptationConfig, label_image
+from toolkit.training.adaptation import AdaptationConfig, label_image, label_image_with_descriptors
 from toolkit.training.label_store import LabelStore, find_images, read_image
 
 EPILOG = """examples:
   toolkit label --teacher alike-n --images ../shared/data/train_images --out labels/alike-n
   toolkit label --teacher shi-tomasi --images photos/ --out labels/st --num-homographies 50 --size 120x160
+  toolkit label --teacher alike-n --images ../shared/data/train_images --out labels/distill \
+      --num-homographies 1 --max-keypoints 1024 --nms-radius 2 --descriptors     # the distill recipe's cache
   toolkit label --teacher superpoint:~/weights/superpoint_v1.pth --images photos/ --out labels/sp
 
 An interrupted run continues where it stopped when rerun with the same arguments; a folder made with
@@ -62,6 +64,10 @@ def label_folder(
         raise ToolkitError(f"no image files in {images}")
     device = device or pick_device()
     teacher = build_teacher(teacher_name).to(device)
+    if config.descriptor_stride and not hasattr(teacher, "dense"):
+        raise ToolkitError(f"--descriptors needs a teacher with a descriptor map (alike-t|s|n|l), not {teacher_name}")
+    if config.descriptor_stride and any(side % config.descriptor_stride for side in config.size):
+        raise ToolkitError(f"--size sides must be multiples of {config.descriptor_stride} with --descriptors")
     created = not (Path(out) / "store.json").exists()
     store = LabelStore.create_or_open(out, teacher_name, config.to_dict())
     root = Path(images)
@@ -83,8 +89,12 @@ def label_folder(
             # Homographies depend on the image and the seed only, so labels do not depend on run order.
             generator = torch.Generator().manual_seed(config.seed * 1_000_003 + int(sha256[:12], 16))
             image = torch.from_numpy(gray)[None, None].to(device)
-            keypoints, scores = label_image(teacher, image, config, generator)
-            store.put(sha256, relative, keypoints.numpy(), scores.numpy())
+            if config.descriptor_stride:
+                keypoints, scores, descriptors = label_image_with_descriptors(teacher, image, config, generator)
+                store.put(sha256, relative, keypoints.numpy(), scores.numpy(), descriptors.numpy())
+            else:
+                keypoints, scores = label_image(teacher, image, config, generator)
+                store.put(sha256, relative, keypoints.numpy(), scores.numpy())
             labelled += 1
             if labelled % 25 == 0:
                 store.save_index()
@@ -100,8 +110,12 @@ def label_folder(
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.threads < 1:
+        raise ToolkitError("--threads must be at least 1")
+    torch.set_num_threads(args.threads)
     config = AdaptationConfig(
-        num_homographies=args.num_homographies, size=parse_size(args.size), max_keypoints=args.max_keypoints
+        num_homographies=args.num_homographies, size=parse_size(args.size), max_keypoints=args.max_keypoints,
+        nms_radius=args.nms_radius, descriptor_stride=4 if args.descriptors else 0,
     )
     summary = label_folder(args.teacher, args.images, args.out, config, pick_device(args.device))
     print(
@@ -126,5 +140,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--num-homographies", type=int, default=100, help="warps per image, identity included (default 100)")
     parser.add_argument("--size", default="240x320", help="HxW images are labelled and trained at (default 240x320)")
     parser.add_argument("--max-keypoints", type=int, default=512, help="keypoints kept per image (default 512)")
+    parser.add_argument("--nms-radius", type=int, default=4, help="label NMS radius in pixels (default 4)")
+    parser.add_argument(
+        "--descriptors", action="store_true",
+        help="also keep the teacher's dense descriptor map at 1/4 resolution (ALIKE teachers; needed by the distill recipe)",
+    )
+    parser.add_argument(
+        "--threads", type=int, default=2,
+        help="CPU threads for the teacher (default 2; use 1 when another job shares a 2-core machine)",
+    )
     parser.add_argument("--device", default=None, help="cpu or cuda[:N] (default: cuda when available)")
     parser.set_defaults(func=run)

@@ -141,6 +141,16 @@ class Alike(nn.Module):
         padded, height, width = pad_to_multiple(gray_to_rgb(image), 32)
         return torch.sigmoid(self.features(padded)[:, -1:, :height, :width])
 
+    def dense(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Score map and descriptor map from one pass (what descriptor distillation learns from).
+
+        image [B, 1 or 3, H, W] in [0, 1] -> (scores [B, 1, H, W] in [0, 1],
+        descriptors [B, dim, H, W] with unit L2 norm over dim).
+        """
+        padded, height, width = pad_to_multiple(gray_to_rgb(image), 32)
+        head = self.features(padded)[:, :, :height, :width]
+        return torch.sigmoid(head[:, -1:]), F.normalize(head[:, :-1], p=2.0, dim=1)
+
 
 def load_alike(name: str, weights_dir: Path) -> Alike:
     """Build ``name`` (alike-t|s|n|l) and load ``weights_dir/<name>.pth`` strictly (every key must match)."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 import torch
+import torch.nn.functional as F
 
 from models.keypoints import border_mask, max_pool_nms
 from toolkit.training.homographies import (
@@ -31,11 +32,16 @@ class AdaptationConfig:
     threshold: float = 0.015  # minimum averaged score of a kept keypoint
     max_keypoints: int = 512
     seed: int = 0
+    # Keep the teacher's dense descriptor map (pooled to 1/stride resolution) for descriptor distillation.
+    # 0 = keypoints only. Only teachers with a `dense` method (the ALIKE family) provide one.
+    descriptor_stride: int = 0
 
     def to_dict(self) -> dict:
         settings = asdict(self)
         settings["size"] = list(self.size)
         settings["homography"]["scale"] = list(self.homography.scale)
+        if not self.descriptor_stride:  # stores written before descriptors existed stay comparable
+            del settings["descriptor_stride"]
         return settings
 
     @staticmethod
@@ -114,3 +120,29 @@ def label_image(
     """[1, 1, H, W] image -> (keypoints [N, 2], scores [N]) on the CPU."""
     keypoints, scores = heatmap_to_keypoints(adapted_heatmap(teacher, image, config, generator), config)
     return keypoints.cpu(), scores.cpu()
+
+
+@torch.no_grad()
+def teacher_descriptor_map(teacher: torch.nn.Module, image: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The teacher's own (unwarped) score map and its descriptor map pooled to 1/stride resolution.
+
+    Args:
+        image: [1, 1, H, W] in [0, 1], H and W multiples of ``stride``.
+    Returns:
+        scores [H, W], descriptors [D, H/stride, W/stride] float16 on the CPU, unit L2 norm over D.
+    """
+    if not hasattr(teacher, "dense"):
+        raise ValueError("this teacher has no dense descriptor map (use an ALIKE teacher: alike-t|s|n|l)")
+    scores, descriptors = teacher.dense(image)
+    pooled = F.normalize(F.avg_pool2d(descriptors.float(), stride), p=2.0, dim=1)
+    return scores[0, 0].float(), pooled[0].half().cpu()
+
+
+def label_image_with_descriptors(
+    teacher: torch.nn.Module, image: torch.Tensor, config: AdaptationConfig, generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`label_image` plus the teacher's descriptor map; one teacher pass when there is one homography."""
+    scores, descriptors = teacher_descriptor_map(teacher, image, config.descriptor_stride)
+    heatmap = scores if config.num_homographies == 1 else adapted_heatmap(teacher, image, config, generator)
+    keypoints, values = heatmap_to_keypoints(heatmap, config)
+    return keypoints.cpu(), values.cpu(), descriptors

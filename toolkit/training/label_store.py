@@ -173,9 +173,19 @@ class LabelStore:
     def has(self, sha256: str) -> bool:
         return (self.items / f"{sha256}.npz").exists()
 
-    def put(self, sha256: str, relative: str, keypoints: np.ndarray, scores: np.ndarray) -> None:
-        """Store one image's labels (atomic)."""
-        buffer = _npz_bytes(keypoints=keypoints.astype(np.float32), scores=scores.astype(np.float32))
+    @property
+    def descriptor_stride(self) -> int:
+        """Resolution divisor of the stored teacher descriptor maps; 0 when the store holds none."""
+        return int(self.settings.get("descriptor_stride", 0))
+
+    def put(
+        self, sha256: str, relative: str, keypoints: np.ndarray, scores: np.ndarray, descriptors: np.ndarray | None = None
+    ) -> None:
+        """Store one image's labels, and the teacher's descriptor map [D, h, w] when given (atomic)."""
+        arrays = {"keypoints": keypoints.astype(np.float32), "scores": scores.astype(np.float32)}
+        if descriptors is not None:
+            arrays["descriptors"] = descriptors.astype(np.float16)
+        buffer = _npz_bytes(**arrays)
         write_atomic(self.items / f"{sha256}.npz", buffer)
         self.index[relative] = sha256
 
@@ -188,6 +198,25 @@ class LabelStore:
         except FileNotFoundError:
             raise ToolkitError(f"no labels for image {sha256[:12]} in {self.root}") from None
         except (OSError, ValueError, KeyError) as exc:
+            raise ToolkitError(f"corrupt label file {path}: {exc}") from None
+
+    def get_descriptors(self, sha256: str) -> np.ndarray:
+        """The teacher's descriptor map [D, H/stride, W/stride] float16 of one image.
+
+        Raises:
+            ToolkitError: absent, or the store was made without ``--descriptors``.
+        """
+        path = self.items / f"{sha256}.npz"
+        try:
+            with np.load(path) as data:
+                return data["descriptors"]
+        except KeyError:
+            raise ToolkitError(
+                f"{self.root} holds no teacher descriptors: label with `toolkit label --descriptors` for the distill recipe"
+            ) from None
+        except FileNotFoundError:
+            raise ToolkitError(f"no labels for image {sha256[:12]} in {self.root}") from None
+        except (OSError, ValueError) as exc:
             raise ToolkitError(f"corrupt label file {path}: {exc}") from None
 
     def save_index(self) -> None:
