@@ -7,13 +7,16 @@ from pathlib import Path
 from toolkit.training.trainer import TrainConfig, read_config_file, resolve_config, train
 
 EPILOG = """examples:
-  toolkit train --images ../shared/data/train_images --labels labels/alike-n --out runs/fn1 --steps 20000
+  toolkit label --teacher alike-n --images ../shared/data/train_images --out labels/distill \
+      --num-homographies 1 --max-keypoints 1024 --nms-radius 2 --descriptors
+  toolkit train --images ../shared/data/train_images --labels labels/distill --out runs/fn1 --threads 2
   toolkit train --images photos/ --labels labels/st --config train.toml --batch 16 --out runs/fn2
   toolkit train --images photos/ --labels labels/st --out runs/fn2 --resume --steps 40000
   torchrun --nproc_per_node 4 -m toolkit train --images photos/ --labels labels/st --out runs/ddp
 
---config takes a JSON or TOML file with any TrainConfig field (arch, model, steps, batch, lr,
-checkpoint_every, validate_every, homography, augment, loss, validation, ...). --resume continues the
+--config takes a JSON or TOML file with any TrainConfig field (recipe = "distill" | "paper", arch, model,
+steps, batch, lr, lr_schedule, threads, cpu_bf16, homography, augment, loss, distill, scales, validation,
+...). The distill recipe (default) needs labels made with --descriptors by an ALIKE teacher. --resume continues the
 run in --out from its last checkpoint with the run's own config (--steps may raise the total).
 """
 
@@ -27,7 +30,13 @@ def run(args: argparse.Namespace) -> int:
     run_dir = Path(args.out)
     config = resolve_config(run_dir, args.resume, config, args.steps, args.batch)
     if args.workers is not None:  # allowed on --resume too: samples do not depend on the worker count
+        if args.workers < 0:
+            raise ToolkitError("--workers must be >= 0")
         config.num_workers = args.workers
+    if args.threads is not None:  # also on --resume: results do not depend on it
+        if args.threads < 1:
+            raise ToolkitError("--threads must be >= 1")
+        config.threads = args.threads
     result = train(config, args.images, args.labels, run_dir, resume=args.resume)
     if result["rank"] != 0:  # under torchrun only the first process reports
         return 0
@@ -36,7 +45,8 @@ def run(args: argparse.Namespace) -> int:
     if last:
         line += f", loss {last['loss']:.4f}"
     if val:
-        line += f", val repeatability {val['repeatability']:.3f}, NN accuracy {val['nn_accuracy']:.3f}"
+        line += (f", val matching score {val['matching_score']:.3f}, NN mAP {val['nn_map']:.3f}, "
+                 f"repeatability {val['repeatability']:.3f}, localisation {val['localisation_error']:.2f} px")
     if result["unreadable"]:
         line += f"; {result['unreadable']} unreadable files skipped"
     print(f"{line} -> {run_dir}")
@@ -46,10 +56,11 @@ def run(args: argparse.Namespace) -> int:
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "train",
-        help="train the network from teacher labels (homographic pairs, SuperPoint losses)",
+        help="train the network from a teacher (homographic pairs; distill or paper recipe)",
         description="Train the keypoint network without hand labels: keypoint cross-entropy against the "
-        "teacher's labels on both views of a random homographic pair, plus the descriptor hinge loss over "
-        "corresponding cells. One GPU, several under torchrun (DDP), or a CPU (gloo).",
+        "teacher's keypoints on both views of a random homographic pair, plus (distill, the default) the "
+        "teacher's descriptors and InfoNCE across views at several input sizes, or (paper) the descriptor "
+        "hinge loss. One GPU, several under torchrun (DDP), or a CPU (gloo; bfloat16 autocast).",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -60,5 +71,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--batch", type=int, default=None, help="pairs per step per process (default 8)")
     parser.add_argument("--out", default="runs/train", help="run folder (default runs/train)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch CPU threads (default: torch's choice; on a shared 2-core box use 1)")
     parser.add_argument("--workers", type=int, default=None, help="DataLoader worker processes (default: 4 on CUDA, 0 on CPU)")
     parser.set_defaults(func=run)

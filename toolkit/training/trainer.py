@@ -1,106 +1,47 @@
-"""Training loop: warped pairs -> SuperPoint losses -> Adam; atomic checkpoints, exact resume, validation,
-DistributedDataParallel under torchrun (NCCL on GPUs, gloo on CPUs), mixed precision on CUDA.
+"""Training loop: warped pairs -> the recipe's losses -> Adam with a warm-up + cosine schedule; atomic
+checkpoints, exact resume, validation, DistributedDataParallel under torchrun (NCCL on GPUs, gloo on CPUs),
+float16 autocast on CUDA, bfloat16 autocast on CPU.
+
+Recipes (``TrainConfig.recipe``): ``distill`` (teacher keypoints + descriptor distillation + InfoNCE,
+multi-scale views; `toolkit.training.distill_losses`) and ``paper`` (SuperPoint's CE + hinge).
 
 Run folder::
 
     RUN/config.json          the full TrainConfig plus the image/label folders
-    RUN/train_state.pt       model + optimizer + scaler + RNG + step (the resume point, replaced atomically)
-    RUN/last.safetensors     latest weights, RUN/best.safetensors lowest validation loss (models.checkpoint)
-    RUN/log.csv, RUN/val.csv per-step losses and validation metrics; RUN/loss.png the loss curve
+    RUN/train_state.pt       model + projection + optimizer + scaler + RNG + step (the resume point)
+    RUN/last.safetensors     latest weights; RUN/best.safetensors highest validation matching score
+    RUN/log.csv, RUN/val.csv per-step losses and validation metrics; RUN/loss.png, RUN/val.png their curves
 """
 from __future__ import annotations
 
 import contextlib
-import csv
 import io
 import json
 import os
+import sys
 import time
-from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from dataclasses import asdict
 from pathlib import Path
-from typing import Any
 
 import torch
 import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
+from tqdm import tqdm
 
 from models.checkpoint import build_model, save_checkpoint
+from models.deform import set_deform_strategy
 from toolkit.errors import ToolkitError
-from toolkit.training.augment import AugmentConfig
-from toolkit.training.homographies import HomographyConfig
+from toolkit.training.config import TrainConfig, config_from_dict, read_config_file  # noqa: F401 (re-exported)
+from toolkit.training.distill_losses import DescriptorProjection, distill_loss
+from toolkit.training.distill_pairs import DistillPairs
 from toolkit.training.label_store import LabelStore, write_atomic
-from toolkit.training.losses import LossConfig, superpoint_loss
+from toolkit.training.losses import superpoint_loss
 from toolkit.training.pairs import StepBatchSampler, WarpedPairs, load_labelled_images, split_train_val
-from toolkit.training.validation import ValidationConfig, validate
+from toolkit.training.run_log import append_csv, plot_loss_curve, plot_validation_curve, truncate_csv
+from toolkit.training.validation import validate
 
 LOG_FIELDS = ["step", "loss", "detector_loss", "descriptor_loss", "lr", "seconds_per_step"]
-VAL_FIELDS = ["step", "val_loss", "repeatability", "nn_accuracy"]
-
-
-@dataclass
-class TrainConfig:
-    """Everything a run depends on; ``--config FILE`` (JSON or TOML) sets any field, nested by section."""
-
-    arch: str = "featurenet"  # or "superpoint"
-    model: dict = field(default_factory=dict)  # FeatureNetConfig / SuperPointConfig fields
-    steps: int = 20000
-    batch: int = 8  # pairs per step and per process
-    lr: float = 1e-4
-    seed: int = 0
-    checkpoint_every: int = 500
-    validate_every: int = 1000
-    log_every: int = 10
-    val_fraction: float = 0.05  # of the images, held back by image hash
-    val_max_images: int = 64
-    num_workers: int = -1  # DataLoader workers (-1: 4 per process on CUDA, 0 on CPU); samples do not depend on it
-    device: str = "auto"  # "auto" (CUDA when available), "cuda" or "cpu" (gloo for several processes)
-    amp: bool = True  # float16 autocast + GradScaler, on CUDA only
-    homography: HomographyConfig = field(default_factory=HomographyConfig)
-    augment: AugmentConfig = field(default_factory=AugmentConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-    validation: ValidationConfig = field(default_factory=ValidationConfig)
-
-
-def _build_dataclass(kind: type, values: dict[str, Any], where: str) -> Any:
-    known = {f.name: f for f in fields(kind)}
-    unknown = sorted(set(values) - set(known))
-    if unknown:
-        raise ToolkitError(f"unknown config key {where}{unknown[0]} (known: {', '.join(known)})")
-    built = {}
-    for name, value in values.items():
-        default = getattr(kind(), name)
-        if is_dataclass(default):
-            if not isinstance(value, dict):
-                raise ToolkitError(f"config key {where}{name} must be a table of settings")
-            value = _build_dataclass(type(default), value, f"{where}{name}.")
-        elif isinstance(default, tuple):
-            value = tuple(value)
-        built[name] = value
-    return kind(**built)
-
-
-def config_from_dict(values: dict[str, Any]) -> TrainConfig:
-    """Nested dict (e.g. parsed JSON/TOML) -> TrainConfig; unknown keys are an error, missing ones default."""
-    return _build_dataclass(TrainConfig, values, "")
-
-
-def read_config_file(path: str | Path) -> TrainConfig:
-    """``.toml`` or ``.json`` file -> TrainConfig."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ToolkitError(f"cannot read config {path}: {exc.strerror}") from None
-    try:
-        if path.suffix == ".toml":
-            import tomllib
-
-            values = tomllib.loads(text)
-        else:
-            values = json.loads(text)
-    except ValueError as exc:
-        raise ToolkitError(f"cannot parse config {path}: {exc}") from None
-    return config_from_dict(values)
+VAL_FIELDS = ["step", "val_loss", "repeatability", "localisation_error", "nn_map", "matching_score"]
 
 
 def init_distributed(device: str = "auto") -> tuple[int, int, torch.device]:
@@ -150,24 +91,6 @@ def _barrier(world: int) -> None:
         dist.barrier()
 
 
-def _truncate_csv(path: Path, fields: list[str], last_step: int) -> None:
-    """Keep the header and the rows up to ``last_step`` (rows after the resume point are replayed)."""
-    rows = []
-    if path.exists():
-        with path.open(newline="") as file:
-            rows = [row for row in csv.DictReader(file) if int(row["step"]) <= last_step]
-    buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=fields)
-    writer.writeheader()
-    writer.writerows(rows)
-    write_atomic(path, buffer.getvalue().encode())
-
-
-def _append_csv(path: Path, fields: list[str], row: dict) -> None:
-    with path.open("a", newline="") as file:
-        csv.DictWriter(file, fieldnames=fields).writerow({key: row[key] for key in fields})
-
-
 def _save_state(path: Path, state: dict) -> None:
     buffer = io.BytesIO()
     torch.save(state, buffer)
@@ -181,32 +104,6 @@ def _load_state(path: Path) -> dict:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # any unpickling/zip error means the same thing to the user
         raise ToolkitError(f"cannot resume: {path} is corrupt or unreadable ({type(exc).__name__})") from None
-
-
-def plot_loss_curve(log_path: Path, png_path: Path) -> None:
-    """Loss and its parts against the step, from ``log.csv`` (written atomically)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    with log_path.open(newline="") as file:
-        rows = list(csv.DictReader(file))
-    if not rows:
-        return
-    steps = [int(r["step"]) for r in rows]
-    figure, axis = plt.subplots(figsize=(6, 3.5), dpi=100)
-    for key in ("loss", "detector_loss", "descriptor_loss"):
-        axis.plot(steps, [float(r[key]) for r in rows], label=key)
-    axis.set_xlabel("step")
-    axis.set_ylabel("loss")
-    axis.legend()
-    axis.grid(alpha=0.3)
-    figure.tight_layout()
-    tmp = png_path.with_name(f".tmp-{png_path.name}")
-    figure.savefig(tmp)
-    plt.close(figure)
-    os.replace(tmp, png_path)
 
 
 def resolve_config(
@@ -256,26 +153,50 @@ def train(config: TrainConfig, images: str, labels: str, run: str | Path, resume
             dist.destroy_process_group()
 
 
+def _data(config: TrainConfig, store: LabelStore, images: list, seed: int, world: int, validation: bool):
+    """The recipe's dataset over ``images``: training pairs, or fixed-size un-augmented validation pairs."""
+    if config.recipe == "distill":
+        fixed = tuple(store.size) if validation else None
+        return DistillPairs(images, store, config.scales, config.homography, None if validation else config.augment,
+                            seed, config.batch * world, fixed)
+    return WarpedPairs(images, store.size, config.homography, None if validation else config.augment, seed)
+
+
 def _train(config, store, records, unreadable, images, labels, run, resume, rank, world, device) -> dict:
     train_images, val_images = split_train_val(records, config.val_fraction, config.val_max_images)
-    size = store.size
+    if config.threads:
+        torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
     model = build_model(config.arch, config.model).to(device)
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    set_deform_strategy(model, "grid_sample" if config.train_sampler == "grid_sample" else "torch")
+    distilling = config.recipe == "distill"
+    if distilling and not hasattr(model.config, "descriptor_dim"):
+        raise ToolkitError(f"the distill recipe trains featurenet, not {config.arch}")
+    # Datasets first: a recipe that cannot run on these labels fails before anything is written.
+    train_set = _data(config, store, train_images, config.seed, world, validation=False)
+    val_set = _data(config, store, val_images, config.seed + 1, 1, validation=True)
+    projection = None
+    if distilling:  # the teacher's width comes from its stored maps (128 for alike-n)
+        teacher_dim = int(store.get_descriptors(train_images[0].sha256).shape[0])
+        projection = DescriptorProjection(model.config.descriptor_dim, teacher_dim).to(device)
+    parameters = list(model.parameters()) + (list(projection.parameters()) if projection is not None else [])
+    optimizer = torch.optim.Adam(parameters, lr=config.lr)
     use_amp = config.amp and device.type == "cuda"
     scaler = torch.amp.GradScaler("cuda") if use_amp else None
     if use_amp:
         keep_deformable_in_float32(model)
-    step, best_val_loss = 0, float("inf")
+    step, best_score = 0, -1.0
     state_path = run / "train_state.pt"
     if resume:
         state = _load_state(state_path)
         try:
             model.load_state_dict(state["model"])
+            if projection is not None:
+                projection.load_state_dict(state["projection"])
             optimizer.load_state_dict(state["optimizer"])
             if scaler is not None and state.get("scaler"):
                 scaler.load_state_dict(state["scaler"])
-            step, best_val_loss = int(state["step"]), float(state["best_val_loss"])
+            step, best_score = int(state["step"]), float(state["best_score"])
             torch.set_rng_state(state["torch_rng"])
         except (KeyError, RuntimeError, ValueError, TypeError) as exc:
             raise ToolkitError(f"cannot resume: {state_path} does not match this run ({str(exc).splitlines()[0][:120]})") from None
@@ -284,8 +205,8 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
         if not resume:
             header = {"train": asdict(config), "images": str(images), "labels": str(labels), "teacher": store.teacher}
             write_atomic(run / "config.json", json.dumps(header, indent=2).encode())
-        _truncate_csv(run / "log.csv", LOG_FIELDS, step)
-        _truncate_csv(run / "val.csv", VAL_FIELDS, step)
+        truncate_csv(run / "log.csv", LOG_FIELDS, step)
+        truncate_csv(run / "val.csv", VAL_FIELDS, step)
     _barrier(world)
 
     if world > 1:
@@ -293,31 +214,45 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
     else:
         network = model
     workers = config.num_workers if config.num_workers >= 0 else (4 if device.type == "cuda" else 0)
-    train_set = WarpedPairs(train_images, size, config.homography, config.augment, config.seed)
     loader = torch.utils.data.DataLoader(
         train_set,
         batch_sampler=StepBatchSampler(step, config.steps, config.batch, rank, world),
         num_workers=workers,
         pin_memory=device.type == "cuda",
     )
-    val_set = WarpedPairs(val_images, size, config.homography, None, config.seed + 1)
     val_loader = torch.utils.data.DataLoader(
         val_set, batch_sampler=[list(range(i, min(i + config.batch, len(val_set)))) for i in range(0, len(val_set), config.batch)]
     )
-    autocast = (lambda: torch.autocast("cuda", dtype=torch.float16)) if use_amp else contextlib.nullcontext
+
+    def loss_fn(outputs_a, outputs_b, batch, generator=None):
+        if distilling:
+            return distill_loss(outputs_a, outputs_b, batch, projection, config.distill, generator)
+        return superpoint_loss(outputs_a, outputs_b, batch, config.loss, generator)
+
+    if use_amp:
+        autocast = lambda: torch.autocast("cuda", dtype=torch.float16)  # noqa: E731
+    elif device.type == "cpu" and config.cpu_bf16:
+        autocast = lambda: torch.autocast("cpu", dtype=torch.bfloat16)  # noqa: E731
+    else:
+        autocast = contextlib.nullcontext
     last: dict[str, float] = {}
     metrics: dict[str, float] = {}
     model.train()
     tick = time.perf_counter()
+    bar = tqdm(total=config.steps, initial=step, desc="train", unit="step", file=sys.stderr,
+               disable=rank != 0 or not sys.stderr.isatty())
     for batch in loader:
         batch = {key: value.to(device, non_blocking=True) for key, value in batch.items()}
         count = batch["image_a"].shape[0]
+        learning_rate = config.learning_rate(step)
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate
+        generator = torch.Generator().manual_seed(config.seed * 65_537 + step)
         with autocast():
             outputs = network(torch.cat([batch["image_a"], batch["image_b"]]))
-        outputs_a = {key: value[:count] for key, value in outputs.items()}
-        outputs_b = {key: value[count:] for key, value in outputs.items()}
-        generator = torch.Generator().manual_seed(config.seed * 65_537 + step)
-        losses = superpoint_loss(outputs_a, outputs_b, batch, config.loss, generator)
+            outputs_a = {key: value[:count] for key, value in outputs.items()}
+            outputs_b = {key: value[count:] for key, value in outputs.items()}
+            losses = loss_fn(outputs_a, outputs_b, batch, generator)
         optimizer.zero_grad(set_to_none=True)
         if scaler is not None:
             scaler.scale(losses["loss"]).backward()
@@ -327,6 +262,7 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
             losses["loss"].backward()
             optimizer.step()
         step += 1
+        bar.update(1)
         if step % config.log_every == 0 or step == config.steps:
             values = torch.stack([losses["loss"].detach(), losses["detector_loss"], losses["descriptor_loss"]]).float()
             if world > 1:
@@ -335,28 +271,34 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
             now = time.perf_counter()
             last = {
                 "step": step, "loss": float(values[0]), "detector_loss": float(values[1]),
-                "descriptor_loss": float(values[2]), "lr": config.lr,
+                "descriptor_loss": float(values[2]), "lr": learning_rate,
                 "seconds_per_step": (now - tick) / config.log_every if step % config.log_every == 0 else 0.0,
             }
             tick = now
+            bar.set_postfix(loss=f"{last['loss']:.3f}")
             if rank == 0:
-                _append_csv(run / "log.csv", LOG_FIELDS, last)
+                append_csv(run / "log.csv", LOG_FIELDS, last)
         if rank == 0 and (step % config.validate_every == 0 or step == config.steps):
-            metrics = {"step": step, **validate(model, val_loader, device, config.loss, config.validation)}
-            _append_csv(run / "val.csv", VAL_FIELDS, metrics)
-            if metrics["val_loss"] < best_val_loss:
-                best_val_loss = metrics["val_loss"]
+            with autocast():
+                metrics = {"step": step, **validate(model, val_loader, device, loss_fn, config.validation)}
+            append_csv(run / "val.csv", VAL_FIELDS, metrics)
+            plot_validation_curve(run / "val.csv", run / "val.png")
+            # The best checkpoint is the one that matches best: detector and descriptor both count.
+            if metrics["matching_score"] > best_score:
+                best_score = metrics["matching_score"]
                 save_checkpoint(model, run / "best.safetensors", {"step": step, **metrics})
         if rank == 0 and (step % config.checkpoint_every == 0 or step == config.steps):
             save_checkpoint(model, run / "last.safetensors", {"step": step})
             _save_state(state_path, {
                 "step": step, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                "projection": projection.state_dict() if projection is not None else {},
                 "scaler": scaler.state_dict() if scaler is not None else {}, "torch_rng": torch.get_rng_state(),
-                "best_val_loss": best_val_loss,
+                "best_score": best_score,
             })
         if step % config.validate_every == 0 or step % config.checkpoint_every == 0:
             _barrier(world)
             tick = time.perf_counter()  # seconds_per_step measures training, not validation or saving
+    bar.close()
     if rank == 0 and (run / "log.csv").exists():
         plot_loss_curve(run / "log.csv", run / "loss.png")
     return {"step": step, "rank": rank, "unreadable": unreadable, "train_images": len(train_images), "val_images": len(val_images),

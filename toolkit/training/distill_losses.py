@@ -1,0 +1,132 @@
+"""Losses of the distill recipe: keypoint cross-entropy, descriptor distillation and InfoNCE across views.
+
+    total = CE(a) + CE(b)                                  teacher keypoints, one per cell, 65-way
+          + distill_weight * mean(1 - cos(P d_s, d_t))    student descriptor of a cell, projected by a
+                                                           training-only P (256 -> 128), against the
+                                                           teacher's descriptor of the same scene point
+          + nce_weight * InfoNCE(a <-> b)                  a cell of a must pick its own scene point in b
+                                                           among the other sampled cells
+
+The projection makes the 256 vs 128 dimensions meet without constraining the student's own space; it is
+never exported. InfoNCE keeps the student's own descriptors discriminative across the homography.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from toolkit.training.homographies import points_inside, warp_points
+from toolkit.training.losses import cell_centres, detector_loss
+
+
+@dataclass
+class DistillLossConfig:
+    distill_weight: float = 2.0
+    nce_weight: float = 0.25
+    temperature: float = 0.1  # InfoNCE logits = cosine / temperature
+    nce_cells: int = 256  # cells of view a per image in the InfoNCE (bounds the [N, N] matrix)
+
+    def __post_init__(self) -> None:
+        if self.temperature <= 0 or self.nce_cells < 2:
+            raise ValueError("temperature must be > 0 and nce_cells >= 2")
+        if self.distill_weight < 0 or self.nce_weight < 0:
+            raise ValueError("loss weights must be >= 0")
+
+
+class DescriptorProjection(nn.Module):
+    """Training-only linear map from the student's descriptor space to the teacher's. [B, Ds, h, w] -> [B, Dt, h, w]."""
+
+    def __init__(self, student_dim: int, teacher_dim: int) -> None:
+        super().__init__()
+        self.linear = nn.Conv2d(student_dim, teacher_dim, 1, bias=False)
+
+    def forward(self, descriptors: torch.Tensor) -> torch.Tensor:
+        return F.normalize(self.linear(descriptors.float()), p=2.0, dim=1)
+
+
+def distillation_loss(projected: torch.Tensor, teacher: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """mean(1 - cos) over valid cells. projected, teacher [B, D, h, w] unit vectors; valid [B, h, w] bool."""
+    cosine = (projected.float() * teacher.float()).sum(dim=1)
+    weights = valid.float()
+    return ((1.0 - cosine) * weights).sum() / weights.sum().clamp_min(1.0)
+
+
+def sample_map(descriptors: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Bilinear sample of a cell-resolution map at pixel points. [D, h, w], [N, 2] (x, y) -> [N, D] unit."""
+    _, height, width = descriptors.shape
+    u = (points[:, 0] + 0.5) / 8.0 - 0.5
+    v = (points[:, 1] + 0.5) / 8.0 - 0.5
+    grid = torch.stack([u * 2.0 / max(width - 1, 1) - 1.0, v * 2.0 / max(height - 1, 1) - 1.0], dim=-1)
+    sampled = F.grid_sample(descriptors[None].float(), grid.view(1, 1, -1, 2), mode="bilinear", align_corners=True)
+    return F.normalize(sampled[0, :, 0].transpose(0, 1), p=2.0, dim=1)
+
+
+def info_nce_loss(
+    descriptors_a: torch.Tensor,
+    descriptors_b: torch.Tensor,
+    homography: torch.Tensor,
+    valid_b: torch.Tensor,
+    config: DistillLossConfig,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """Symmetric InfoNCE between cells of a and the same scene points in b.
+
+    Args:
+        descriptors_a, descriptors_b: [B, D, h, w] unit vectors; homography [B, 3, 3] a -> b pixels;
+        valid_b [B, h, w] bool (cells of b whose content comes from a).
+    Returns:
+        scalar, the mean over images that have at least two usable cells.
+    """
+    batch, _, height, width = descriptors_a.shape
+    centres = cell_centres(height, width, descriptors_a.device)
+    losses = []
+    for i in range(batch):
+        warped = warp_points(centres, homography[i].float())
+        usable = points_inside(warped, (height * 8, width * 8), border=4)
+        cell_b = (warped / 8.0).floor().long()
+        usable &= valid_b[i][cell_b[:, 1].clamp(0, height - 1), cell_b[:, 0].clamp(0, width - 1)]
+        index = usable.nonzero()[:, 0]
+        if index.numel() < 2:
+            continue
+        if index.numel() > config.nce_cells:
+            index = index[torch.randperm(index.numel(), generator=generator)[: config.nce_cells].to(index.device)]
+        anchors = descriptors_a[i].reshape(descriptors_a.shape[1], -1)[:, index].transpose(0, 1).float()
+        positives = sample_map(descriptors_b[i], warped[index])
+        logits = anchors @ positives.T / config.temperature
+        target = torch.arange(index.numel(), device=logits.device)
+        losses.append(0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target)))
+    if not losses:
+        return descriptors_a.sum() * 0.0
+    return torch.stack(losses).mean()
+
+
+def distill_loss(
+    outputs_a: dict[str, torch.Tensor],
+    outputs_b: dict[str, torch.Tensor],
+    batch: dict[str, torch.Tensor],
+    projection: DescriptorProjection,
+    config: DistillLossConfig,
+    generator: torch.Generator | None = None,
+) -> dict[str, torch.Tensor]:
+    """The recipe's total loss and its parts (scalars; the parts detached)."""
+    detector = detector_loss(outputs_a["logits"], batch["labels_a"]) + detector_loss(
+        outputs_b["logits"], batch["labels_b"], batch["valid_b"]
+    )
+    distill = 0.5 * (
+        distillation_loss(projection(outputs_a["descriptors"]), batch["teacher_a"], batch["teacher_valid_a"])
+        + distillation_loss(projection(outputs_b["descriptors"]), batch["teacher_b"], batch["teacher_valid_b"])
+    )
+    nce = info_nce_loss(
+        outputs_a["descriptors"], outputs_b["descriptors"], batch["homography"], batch["valid_b"], config, generator
+    )
+    total = detector + config.distill_weight * distill + config.nce_weight * nce
+    return {
+        "loss": total,
+        "detector_loss": detector.detach(),
+        "descriptor_loss": (config.distill_weight * distill + config.nce_weight * nce).detach(),
+        "distill_loss": distill.detach(),
+        "nce_loss": nce.detach(),
+    }
