@@ -13,12 +13,14 @@ from toolkit.evaluation.detectors import DetectorConfig, load_detector
 from toolkit.evaluation.report import check_output_dir, format_terminal_table, write_report
 from toolkit.evaluation.runner import EvalConfig, ImageCache, evaluate_model, group_summaries, pair_records
 
-MODEL_HELP = ("model to evaluate, repeatable: orb, sift, an artefact directory, a checkpoint "
-              "(.safetensors/.pth), superpoint:PATH; prefix LABEL= to name the row (default: orb sift)")
+MODEL_HELP = ("model to evaluate, repeatable: default / default-relu (the shipped weights), orb, sift, an artefact "
+              "directory, a checkpoint (.safetensors/.pth), superpoint:PATH, teacher:alike-n (the teacher's own "
+              "keypoints and descriptors); prefix LABEL= to name the row (default: default orb sift)")
 
 HPATCHES_EPILOG = """\
 examples:
-  toolkit eval hpatches --data ../shared/data/hpatches_v_dogman --model orb --model sift -o reports/dogman
+  toolkit eval hpatches --data ../shared/data/hpatches_v_dogman --model default --model default-relu \
+      --model orb --model sift --model teacher:alike-n --max-keypoints 500 -o reports/dogman
   toolkit eval hpatches --data hpatches-sequences-release --model fp32=export/x86 --model int8=export/x86_int8
   toolkit eval hpatches --data DIR --model sift --size native --max-keypoints 500
 
@@ -104,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         check_output_dir(args.output)
     pairs = _read_pairs(args)
     # Load every model before the first pair, so a bad spec fails in a second rather than after a long run.
-    detectors = [load_detector(spec, detector_config) for spec in (args.model or ["orb", "sift"])]
+    detectors = [load_detector(spec, detector_config) for spec in (args.model or ["default", "orb", "sift"])]
     for detector, label in zip(detectors, _unique_labels([d.label for d in detectors])):
         detector.label = label
     images = ImageCache(config.size, config.normalise)

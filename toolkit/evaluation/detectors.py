@@ -9,6 +9,8 @@ Specs (optionally prefixed ``label=`` to name the row in the report):
                                  `vo_runtime.FeatureExtractor` in onnxruntime exactly as the VO runtime does
     ``FILE.safetensors|.pth``    a training checkpoint (`models.checkpoint.load_checkpoint`), see torch_models
     ``superpoint:FILE``          Magic Leap ``superpoint_v1.pth`` (`models.superpoint.load_superpoint_v1`)
+    ``teacher:NAME``             a teacher's own keypoints and descriptors (``teacher:alike-n``)
+    ``default``, ``default-relu`` the shipped weights (`models.weights`): FeatureNet ELU / ReLU
 """
 from __future__ import annotations
 
@@ -132,6 +134,10 @@ def split_label(spec: str) -> tuple[str | None, str]:
     return None, spec
 
 
+SHIPPED_SPECS = {"default": "featurenet-elu", "default-relu": "featurenet-relu",
+                 "featurenet-elu": "featurenet-elu", "featurenet-relu": "featurenet-relu"}
+
+
 def load_detector(spec: str, config: DetectorConfig) -> Detector:
     """Build the detector a ``--model`` spec names; raise `ToolkitError` for a spec that names nothing usable."""
     label, target = split_label(spec.strip())
@@ -140,6 +146,16 @@ def load_detector(spec: str, config: DetectorConfig) -> Detector:
         return orb_detector(config, label or "ORB")
     if lowered == "sift":
         return sift_detector(config, label or "SIFT")
+    if lowered.startswith("teacher:"):
+        from toolkit.evaluation.torch_models import teacher_detector
+
+        name = target.split(":", 1)[1]
+        return teacher_detector(name, config, label or f"teacher {name}")
+    if lowered in SHIPPED_SPECS:
+        from models.weights import shipped_checkpoint
+        from toolkit.evaluation.torch_models import checkpoint_detector
+
+        return checkpoint_detector(shipped_checkpoint(SHIPPED_SPECS[lowered]), config, label or SHIPPED_SPECS[lowered])
     if lowered.startswith("superpoint:"):
         from toolkit.evaluation.torch_models import superpoint_detector
 

@@ -1,4 +1,4 @@
-"""PyTorch detectors for `toolkit eval`: EdgeFeat checkpoints and Magic Leap SuperPoint weights.
+"""PyTorch detectors for `toolkit eval`: EdgeFeat checkpoints, Magic Leap SuperPoint weights and the teacher.
 
 The post-processing is `models.keypoints.extract_keypoints`, the same function the export bakes into the
 ONNX graph, so a checkpoint and its artefact differ only by what export and precision change.
@@ -70,3 +70,33 @@ def superpoint_detector(path: Path, config: DetectorConfig, label: str) -> Detec
     except (ValueError, RuntimeError, OSError, EOFError) as exc:
         raise ToolkitError(f"cannot load SuperPoint weights {path}: {str(exc).splitlines()[0]}") from None
     return _network_detector(model, config, label, "superpoint", {"weights": str(path), "arch": "superpoint"})
+
+
+def teacher_detector(name: str, config: DetectorConfig, label: str) -> Detector:
+    """A teacher's own keypoints and descriptors (``teacher:alike-n``), so reports put student and teacher
+    side by side: NMS peaks of its dense score map (same radius, border, threshold and cap as every
+    model) with its full-resolution descriptors read at those pixels."""
+    from models.keypoints import border_mask, max_pool_nms
+    from models.teachers import build_teacher
+
+    teacher = build_teacher(name)
+    if not hasattr(teacher, "dense"):
+        raise ToolkitError(f"teacher {name} has no descriptors to evaluate (use alike-t|s|n|l)")
+
+    def detect(gray: np.ndarray) -> Detection:
+        height, width = gray.shape
+        tensor = torch.from_numpy(gray).float().div_(255.0)[None, None]
+        with torch.inference_mode():
+            scores, descriptors = teacher.dense(tensor)
+            peaks = max_pool_nms(scores, config.nms_radius)[0, 0] * border_mask(height, width, config.border, scores)
+            values, indices = torch.topk(peaks.reshape(-1), min(config.max_keypoints, height * width))
+            keep = values > config.detection_threshold
+            values, indices = values[keep], indices[keep]
+            rows, cols = indices // width, indices % width
+            picked = descriptors[0][:, rows, cols].T
+        keypoints = torch.stack([cols, rows], dim=1).float().numpy()
+        return Detection(keypoints, values.float().numpy(), picked.float().numpy())
+
+    settings = {"teacher": name, "max_keypoints": config.max_keypoints, "nms_radius": config.nms_radius,
+                "detection_threshold": config.detection_threshold, "border": config.border}
+    return Detector(label, "teacher", detect, settings)
