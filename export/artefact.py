@@ -92,9 +92,9 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
     (height, width), precision, max_keypoints = _resolve(options, profile)
     output = Path(options.output)
     _check_output_dir(output, options.force)
-    if options.checkpoint is None:
-        raise ToolkitError("--checkpoint is required: no trained default model ships with this version")
-    net, info = load_checkpoint(options.checkpoint)
+    from models.weights import resolve_checkpoint
+
+    net, info = load_checkpoint(resolve_checkpoint(options.checkpoint))
     set_deform_strategy(net, "native" if profile.deform_strategy == "native" else "torch")
     torch.manual_seed(0)
 

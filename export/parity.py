@@ -19,12 +19,6 @@ from toolkit.errors import ToolkitError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp")
 # Real images with texture, dark frames and a viewpoint change: two HPatches frames and a LOL low/high pair.
-DEFAULT_PARITY_FILES = (
-    "hpatches_v_dogman/v_dogman/1.ppm",
-    "hpatches_v_dogman/v_dogman/4.ppm",
-    "lowlight_pairs/low/1.png",
-    "lowlight_pairs/high/1.png",
-)
 
 
 @dataclass
@@ -51,12 +45,16 @@ def shared_data_dir() -> Path | None:
     return None
 
 
+# Shipped with the package (public domain and our own renders: parity_images/PROVENANCE.md), so export and
+# quantise need no ../shared: two normal-light and two dark 240x320 images.
+SHIPPED_PARITY_DIR = Path(__file__).resolve().parent / "parity_images"
+
+
 def default_parity_paths() -> list[Path]:
-    data = shared_data_dir()
-    paths = [data / name for name in DEFAULT_PARITY_FILES] if data else []
-    paths = [path for path in paths if path.is_file()]
+    """The shipped parity and calibration images (used when no image folder is given)."""
+    paths = sorted(SHIPPED_PARITY_DIR.glob("*.png"))
     if not paths:
-        raise ToolkitError("no parity images found (../shared/data or $EDGEFEAT_DATA); pass --parity-images DIR")
+        raise ToolkitError(f"the shipped parity images are missing from {SHIPPED_PARITY_DIR}: reinstall the package")
     return paths
 
 

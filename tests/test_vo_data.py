@@ -105,10 +105,14 @@ def test_missing_or_bad_calibration_is_a_clean_error(shared_data, tmp_path, caps
         open_sequence(tmp_path / "tum_other")
 
 
-def test_cli_argument_errors(shared_data, tmp_path, capsys):
+def test_cli_argument_errors(shared_data, tmp_path, capsys, monkeypatch):
     tum = str(shared_data / "tum_fr2_desk_snippet")
-    assert main(["--images", tum]) == 2
-    assert "--artefact DIR is required" in capsys.readouterr().err
+    import vo_runtime.artefact
+
+    monkeypatch.setattr(vo_runtime.artefact, "DEFAULT_ARTEFACT_DIR", tmp_path / "not-installed")
+    assert main(["--images", tum]) == 2  # no --artefact and an install without the shipped one
+    assert "shipped default artefact is missing" in capsys.readouterr().err
+    monkeypatch.undo()
     assert main(["--features", "orb", "--images", tum, "--lowlight", "dark"]) == 2
     assert "GAMMA,SIGMA" in capsys.readouterr().err
     assert main(["--artefact", str(tmp_path), "--images", tum]) == 2
@@ -141,3 +145,10 @@ def test_all_black_sequence_reports_why_there_is_no_ate(shared_data, tmp_path, c
     assert summary["states"] == {"initialising": 5} and summary["ate_rmse_m"] is None
     assert "nothing to evaluate" in summary["evaluation_error"]
     assert len((tmp_path / "run" / "trajectory_tum.txt").read_text().splitlines()) == 5
+
+
+def test_cli_runs_the_shipped_artefact_by_default(shared_data, tmp_path, capsys):
+    tum = str(shared_data / "tum_fr2_desk_snippet")
+    assert main(["--images", tum, "--max-frames", "6", "--no-progress", "--json", "-o", str(tmp_path / "out")]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["features"].endswith("default_artefact") and summary["frames"] == 6

@@ -8,6 +8,8 @@ from export.artefact import ExportOptions, export_artefact
 from toolkit.sizes import parse_size
 
 EXAMPLES = """examples:
+  toolkit export --target tx2 -o out/tx2                                     # the shipped default model
+  toolkit export --target x86-cpu --checkpoint default-relu -o out/cpu-relu   # the shipped ReLU model
   toolkit export --target tx2 --checkpoint runs/a/best.safetensors -o out/tx2
   toolkit export --target x86-cpu --checkpoint runs/a/best.safetensors --input-size 480x640 -o out/cpu
   toolkit export --target tx2 --checkpoint C --precision fp32 --max-keypoints 512 -o out/tx2-fp32 --force
@@ -28,7 +30,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--target", required=True, help="target profile: tx2, x86-cpu, or a path to a profile TOML")
-    parser.add_argument("--checkpoint", type=Path, help="checkpoint (.safetensors, or a Magic Leap superpoint_v1.pth)")
+    parser.add_argument("--checkpoint", type=Path, help="checkpoint (.safetensors, or a Magic Leap superpoint_v1.pth); default: the shipped "
+                        "featurenet-elu weights (`default-relu` names the shipped ReLU model)")
     parser.add_argument("--input-size", metavar="HxW", help="fixed input size (default: the profile's)")
     parser.add_argument("--precision", choices=["fp32", "fp16"], help="default: the profile's (tx2: fp16, x86-cpu: fp32)")
     parser.add_argument("--max-keypoints", type=int, metavar="K", help="fixed number of output rows (default: the profile's)")
@@ -36,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--threshold", type=float, default=0.005, help="detection threshold on the keypoint probability")
     parser.add_argument("--border", type=int, default=4, help="pixels removed at the image border (default 4)")
     parser.add_argument("--dense", action="store_true", help="output the raw heads instead of keypoints")
-    parser.add_argument("--parity-images", type=Path, metavar="DIR", help="images for the parity run (default: ../shared/data)")
+    parser.add_argument("--parity-images", type=Path, metavar="DIR", help="images for the parity run (default: the 4 images shipped in export/parity_images)")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="DIR", help="artefact directory to write")
     parser.add_argument("--force", action="store_true", help="replace an existing artefact in the output directory")
     parser.set_defaults(func=run)

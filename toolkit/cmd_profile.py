@@ -10,8 +10,9 @@ from profiles import TargetProfile, load_profile
 from toolkit.errors import ToolkitError
 
 EXAMPLES = """examples:
-  toolkit profile                                         # FeatureNet vs SuperPoint, both targets, 240x320
-  toolkit profile --model featurenet --model featurenet-relu --target x86-cpu --threads 2
+  toolkit profile                                         # the shipped model vs SuperPoint, both targets, 240x320
+  toolkit profile --model default --model default-relu --target x86-cpu --threads 2
+  toolkit profile --model featurenet --model featurenet-relu   # the architectures with random weights
   toolkit profile --model runs/a/best.safetensors --input-size 480x640 -o reports/a-480
   toolkit profile --model out/cpu --target x86-cpu        # an exported artefact (its own input size)
   toolkit profile --calibrate                             # fit this host's figures, report the LOO error
@@ -40,7 +41,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--model", action="append", metavar="M",
-                        help="featurenet, featurenet-relu, superpoint, a checkpoint or an artefact directory (repeatable; default featurenet)")
+                        help="default / default-relu (the shipped weights), featurenet, featurenet-relu, superpoint (random "
+                        "weights), a checkpoint or an artefact directory (repeatable; default: default)")
     parser.add_argument("--target", default="all", help="tx2, x86-cpu, all, or a profile TOML path (default all)")
     parser.add_argument("--input-size", metavar="HxW", help="input size (default: the artefact's, else the profile's)")
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime/torch threads for host measurements (default 1)")
@@ -89,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     from toolkit.profiling.sources import resolve_model
 
     requested = parse_size(args.input_size) if args.input_size else None
-    specs = list(args.model or ["featurenet"])
+    specs = list(args.model or ["default"])
     if not args.no_compare and "superpoint" not in specs:
         specs.append("superpoint")
     sources = [resolve_model(spec, requested) for spec in specs]

@@ -9,6 +9,7 @@ from toolkit.sizes import parse_size
 from toolkit.compression.workflow import PruneOptions, format_report, prune_checkpoint
 
 EXAMPLES = """examples:
+  toolkit prune --checkpoint default-relu --ratio 0.5 -o relu-pruned50.safetensors    # the shipped ReLU model
   toolkit prune --checkpoint runs/a/best.safetensors --ratio 0.3 -o runs/a/pruned30.safetensors
   toolkit prune --checkpoint C --target-macs 150000000 --steps 300          # MACs at --size (240x320)
   toolkit prune --checkpoint C --ratio 0.5 --images ../shared/data/train_images --labels labels/sp --steps 500
@@ -38,7 +39,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--checkpoint", type=Path, required=True, help="FeatureNet checkpoint (.safetensors)")
+    parser.add_argument("--checkpoint", type=Path, default=None,
+                        help="FeatureNet checkpoint (.safetensors); default: the shipped featurenet-elu "
+                        "(`default-relu` names the shipped ReLU model)")
     amount = parser.add_mutually_exclusive_group(required=True)
     amount.add_argument("--ratio", type=_ratio, help="fraction of channels to remove per group, in (0, 1)")
     amount.add_argument("--target-macs", type=int, metavar="M", help="smallest pruning that needs at most M MACs at --size")

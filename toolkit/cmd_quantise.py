@@ -8,6 +8,7 @@ from pathlib import Path
 from toolkit.compression.quantise import QuantiseOptions, quantise_artefact
 
 EXAMPLES = """examples:
+  toolkit quantise --mode int8 -o out/cpu-int8                      # the shipped featurenet-relu artefact
   toolkit quantise --artefact out/cpu --mode int8 -o out/cpu-int8
   toolkit quantise --artefact out/cpu --mode int8 --calibration ../shared/data/train_images --calibration-count 64 \\
       --keep-sensitive 3 -o out/cpu-int8-k3
@@ -31,9 +32,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--artefact", type=Path, required=True, metavar="DIR", help="FP32 artefact directory (from toolkit export)")
+    parser.add_argument("--artefact", type=Path, default=None, metavar="DIR",
+                        help="FP32 artefact directory (from toolkit export); default: the shipped featurenet-relu "
+                        "x86-cpu artefact")
     parser.add_argument("--mode", required=True, choices=["int8", "fp16"], help="int8 (x86-cpu) or fp16")
-    parser.add_argument("--calibration", type=Path, metavar="DIR", help="calibration images (default ../shared/data/train_images)")
+    parser.add_argument("--calibration", type=Path, metavar="DIR", help="calibration images (default: the 4 images shipped in export/parity_images)")
     parser.add_argument("--calibration-count", type=int, default=32, metavar="N", help="images used for calibration (default 32)")
     parser.add_argument("--keep-sensitive", type=int, nargs="?", const=3, default=0, metavar="N",
                         help="keep the N most sensitive convs in FP32 (N defaults to 3 when the flag is given alone)")
@@ -43,8 +46,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vo_runtime.artefact import default_artefact
+
     options = QuantiseOptions(
-        artefact=args.artefact, mode=args.mode, output=args.output, calibration=args.calibration,
+        artefact=args.artefact if args.artefact is not None else default_artefact(), mode=args.mode, output=args.output, calibration=args.calibration,
         calibration_count=args.calibration_count, keep_sensitive=args.keep_sensitive, force=args.force,
     )
     directory = quantise_artefact(options)

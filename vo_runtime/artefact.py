@@ -70,3 +70,15 @@ def verify_artefact(artefact_dir: str | Path) -> dict[str, Any]:
             f"{str(expected)[:12]}...): the file was changed or truncated after export"
         )
     return manifest
+
+
+DEFAULT_ARTEFACT_DIR = Path(__file__).resolve().parent / "default_artefact"
+
+
+def default_artefact() -> Path:
+    """The artefact shipped with the package: the featurenet-relu weights exported by `toolkit export
+    --target x86-cpu --checkpoint default-relu` at 240x320 (its manifest says so). Raises ArtefactError
+    when an install lacks it."""
+    if not (DEFAULT_ARTEFACT_DIR / "manifest.json").is_file():
+        raise ArtefactError(f"the shipped default artefact is missing from {DEFAULT_ARTEFACT_DIR}: pass --artefact DIR")
+    return DEFAULT_ARTEFACT_DIR

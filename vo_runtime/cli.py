@@ -15,6 +15,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from vo_runtime.artefact import default_artefact
 from vo_runtime.datasets import CAMERA_PRESETS, open_sequence
 from vo_runtime.errors import VORuntimeError
 from vo_runtime.features import FeatureExtractor, OrbExtractor
@@ -45,7 +46,9 @@ adds Gaussian noise of SIGMA grey levels (seeded per frame), to test the same se
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--features", choices=("artefact", "orb"), default="artefact",
                         help="keypoints from the artefact (default) or from OpenCV ORB, for comparison")
-    parser.add_argument("--artefact", type=Path, help="artefact directory written by `toolkit export`")
+    parser.add_argument("--artefact", type=Path,
+                        help="artefact directory written by `toolkit export` (default: the shipped featurenet-relu x86-cpu "
+                        "artefact, 240x320)")
     parser.add_argument("--images", required=True, type=Path, help="sequence folder or folder of images")
     parser.add_argument("--calib", help=f"KITTI calib.txt, JSON intrinsics, or a preset ({', '.join(CAMERA_PRESETS)})")
     parser.add_argument("--camera", type=int, default=0, help="KITTI camera index: image_N/ and PN (default 0)")
@@ -92,7 +95,7 @@ def _progress(items: Iterator, total: int, enabled: bool) -> Iterator:
 def run(args: argparse.Namespace) -> int:
     lowlight = _parse_lowlight(args.lowlight)
     if args.features == "artefact" and args.artefact is None:
-        raise VORuntimeError("--artefact DIR is required (or --features orb)")
+        args.artefact = default_artefact()
     if args.output is not None and args.output.exists() and not args.output.is_dir():
         raise VORuntimeError(f"--output {args.output} exists and is not a directory")
     sequence = open_sequence(args.images, args.calib, args.camera)

@@ -24,7 +24,8 @@ from export.onnx_export import op_histogram
 from export.parity import default_parity_paths, prepare_image
 from profiles import load_profile
 from toolkit import __version__
-from toolkit.compression.images import default_image_dir, load_images
+from export.parity import SHIPPED_PARITY_DIR
+from toolkit.compression.images import load_images
 from toolkit.compression.report import interleaved_median_ms, ort_drift, ort_session
 from toolkit.compression.sensitivity import head_output_convs, layer_sensitivity
 from toolkit.atomic import atomic_directory
@@ -144,7 +145,7 @@ def quantise_artefact(options: QuantiseOptions, log=print) -> Path:
 
     details: dict = {"mode": options.mode}
     if options.mode == "int8":
-        folder = Path(options.calibration) if options.calibration else default_image_dir()
+        folder = Path(options.calibration) if options.calibration else SHIPPED_PARITY_DIR
         calibration, paths = load_images(folder, options.calibration_count, (height, width))
         log(f"calibrating on {len(paths)} images from {folder}")
         sensitivity = layer_sensitivity(model, calibration[:SENSITIVITY_IMAGES])

@@ -21,7 +21,7 @@ MEASURE_IMAGES = 8  # drift images; spread over the image folder
 
 @dataclass
 class PruneOptions:
-    checkpoint: Path
+    checkpoint: Path | None
     output: Path
     ratio: float | None = None
     target_macs: int | None = None
@@ -112,9 +112,12 @@ def prune_checkpoint(options: PruneOptions, log=print, progress: bool = True) ->
         raise ToolkitError(f"--batch must be >= 1, got {options.batch}")
     if options.labels is not None and options.images is None:
         raise ToolkitError("--labels needs --images (the folder the labels were made for)")
-    teacher, info = load_checkpoint(options.checkpoint)
+    from models.weights import WEIGHTS_DIR, resolve_checkpoint
+
+    checkpoint = resolve_checkpoint(options.checkpoint)
+    teacher, info = load_checkpoint(checkpoint)
     if not isinstance(teacher, FeatureNet):
-        raise ToolkitError(f"pruning supports featurenet checkpoints; {options.checkpoint} is {info.arch}")
+        raise ToolkitError(f"pruning supports featurenet checkpoints; {checkpoint} is {info.arch}")
     images = Path(options.images) if options.images else default_image_dir()
     measure, _ = load_images(images, MEASURE_IMAGES, options.size)  # fails early on an image-less folder
 
@@ -124,7 +127,9 @@ def prune_checkpoint(options: PruneOptions, log=print, progress: bool = True) ->
         log(f"ratio {ratio:.3f} meets {options.target_macs:,} MACs ({search.macs:,} at {options.size[0]}x{options.size[1]})")
     else:
         ratio = options.ratio
-    output = Path(options.output) if options.output else default_output(Path(options.checkpoint), ratio)
+    output = Path(options.output) if options.output else default_output(checkpoint, ratio)
+    if not options.output and checkpoint.resolve().parent == WEIGHTS_DIR:
+        output = Path.cwd() / output.name  # never write beside the shipped weights, inside the package
     if output.exists() and not options.force:
         raise ToolkitError(f"{output} exists; pass --force to replace it")
     if output.suffix != ".safetensors":
@@ -147,7 +152,7 @@ def prune_checkpoint(options: PruneOptions, log=print, progress: bool = True) ->
     if options.evaluate:
         evaluation, evaluation_note = evaluation_metrics({"before": teacher, "after": student}, options.size)
     report = PruneReport(
-        checkpoint=str(options.checkpoint), output=str(output), ratio=ratio, size=list(options.size),
+        checkpoint=str(checkpoint), output=str(output), ratio=ratio, size=list(options.size),
         widths_before=_widths(teacher), widths_after=_widths(student),
         before=ModelFigures(count_parameters(teacher), count_macs(teacher, options.size), latency["before"]),
         after=ModelFigures(count_parameters(student), count_macs(student, options.size), latency["after"]),

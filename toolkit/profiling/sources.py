@@ -57,16 +57,22 @@ def architecture(name: str) -> nn.Module:
 
 def resolve_model(spec: str, requested_size: tuple[int, int] | None) -> ModelSource:
     """Turn one ``--model`` value into a `ModelSource`; an artefact must match ``requested_size`` if given."""
+    from models.weights import ALIASES, resolve_checkpoint
+
     path = Path(spec)
     if spec in ARCHITECTURES:
         return ModelSource(spec, architecture(spec), "architecture (random weights)")
+    if spec in ALIASES and not path.exists():
+        net, info = load_checkpoint(resolve_checkpoint(spec))
+        return ModelSource(f"{ALIASES[spec]} (shipped)", net, f"shipped weights {info.path}")
     if path.is_dir():
         return _from_artefact(path, requested_size)
     if path.is_file():
         net, info = load_checkpoint(path)
         label = f"{path.stem} ({info.arch})"
         return ModelSource(label, net, f"checkpoint {path}")
-    raise ToolkitError(f"unknown model {spec!r}: use {', '.join(ARCHITECTURES)}, a checkpoint file or an artefact directory")
+    raise ToolkitError(f"unknown model {spec!r}: use default, default-relu, {', '.join(ARCHITECTURES)}, a checkpoint "
+                       "file or an artefact directory")
 
 
 def _from_artefact(directory: Path, requested_size: tuple[int, int] | None) -> ModelSource:
