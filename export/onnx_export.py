@@ -15,6 +15,7 @@ import torch
 from torch import nn
 
 from toolkit.errors import ToolkitError
+from vo_runtime.errors import first_line
 
 
 @dataclass
@@ -60,7 +61,7 @@ def full_check(model: onnx.ModelProto) -> None:
     try:
         onnx.checker.check_model(model, full_check=True)
     except (onnx.checker.ValidationError, onnx.shape_inference.InferenceError) as exc:
-        raise ToolkitError(f"exported graph fails onnx.checker: {str(exc).splitlines()[0]}") from None
+        raise ToolkitError(f"exported graph fails onnx.checker: {first_line(exc)}") from None
 
 
 def export_onnx(

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import pickle
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +21,7 @@ from models.featurenet import FeatureNet, FeatureNetConfig
 from models.superpoint import SuperPointConfig, SuperPointNet, load_superpoint_v1
 from toolkit.errors import ToolkitError
 from vo_runtime.artefact import sha256_file
+from vo_runtime.errors import first_line
 
 CHECKPOINT_FORMAT = "edgefeat-checkpoint/1"
 
@@ -79,7 +79,22 @@ def _read_safetensors(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, st
             header = handle.metadata() or {}
         return load_file(str(path)), header
     except (SafetensorError, OSError, ValueError) as exc:
-        raise CheckpointError(f"{path} is not a readable safetensors checkpoint ({str(exc).splitlines()[0]})") from None
+        raise CheckpointError(f"{path} is not a readable safetensors checkpoint ({first_line(exc)})") from None
+
+
+def checkpoint_metadata(path: str | Path) -> dict[str, Any] | None:
+    """The metadata of an EdgeFeat checkpoint file, or None for any other file (never raises)."""
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            header = handle.metadata() or {}
+        if header.get("format") != CHECKPOINT_FORMAT:
+            return None
+        metadata = json.loads(header.get("metadata", "{}"))
+    except (SafetensorError, OSError, ValueError):
+        return None
+    return metadata if isinstance(metadata, dict) else None
 
 
 def load_checkpoint(path: str | Path) -> tuple[nn.Module, CheckpointInfo]:
@@ -90,13 +105,14 @@ def load_checkpoint(path: str | Path) -> tuple[nn.Module, CheckpointInfo]:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
+    if path.stat().st_size == 0:
+        raise CheckpointError(f"checkpoint {path} is empty")
     digest = sha256_file(path)
     if path.suffix in (".pth", ".pt"):
         try:
             model = load_superpoint_v1(path)
-        except (ValueError, RuntimeError, OSError, EOFError, pickle.UnpicklingError) as exc:
-            # UnpicklingError: weights_only=True met something other than tensors and containers.
-            raise CheckpointError(f"cannot load {path}: {str(exc).splitlines()[0][:200]}") from None
+        except (ValueError, RuntimeError, OSError) as exc:
+            raise CheckpointError(f"cannot load {path}: {first_line(exc)}") from None
         return model, CheckpointInfo(str(path), digest, "superpoint", model.config.to_dict(), {"source": "superpoint_v1"})
     tensors, header = _read_safetensors(path)
     if header.get("format") != CHECKPOINT_FORMAT:
@@ -110,6 +126,6 @@ def load_checkpoint(path: str | Path) -> tuple[nn.Module, CheckpointInfo]:
     try:
         model.load_state_dict(tensors, strict=True)
     except RuntimeError as exc:
-        first = str(exc).splitlines()[0] + " " + " ".join(str(exc).splitlines()[1:2])
-        raise CheckpointError(f"{path} does not match its {header['arch']} config: {first.strip()[:200]}") from None
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()][:2]
+        raise CheckpointError(f"{path} does not match its {header['arch']} config: {' '.join(lines)[:200]}") from None
     return model.eval(), CheckpointInfo(str(path), digest, header["arch"], config, metadata)

@@ -13,6 +13,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from models.torch_files import load_weights_only
+
 
 @dataclass
 class SuperPointConfig:
@@ -60,9 +62,9 @@ class SuperPointNet(nn.Module):
 def load_superpoint_v1(path: str | Path) -> SuperPointNet:
     """Load Magic Leap's ``superpoint_v1.pth`` (a plain state dict) without unpickling arbitrary objects.
 
-    Raises ``ValueError`` naming missing/unexpected keys or a shape mismatch.
+    Raises ``ValueError`` for an unreadable file, missing/unexpected keys or a shape mismatch.
     """
-    state = torch.load(str(path), map_location="cpu", weights_only=True)
+    state = load_weights_only(path)
     if isinstance(state, dict) and "state_dict" in state and isinstance(state["state_dict"], dict):
         state = state["state_dict"]
     if not isinstance(state, dict):

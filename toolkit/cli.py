@@ -2,6 +2,7 @@
 
 A subcommand module (``toolkit/cmd_<name>.py``) exposes ``register(subparsers)`` which adds a parser
 whose ``func(args) -> int`` does the work. Adding a command is one line in ``COMMAND_MODULES``.
+Every failure a user can cause is one ``error:`` line on stderr and exit code 2 (`run_guarded`).
 """
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import sys
 
 from toolkit import __version__
 from toolkit.errors import ToolkitError
+from vo_runtime.clitools import OneLineArgumentParser, run_guarded
 from vo_runtime.errors import VORuntimeError
 
 # Order is the order shown by `toolkit --help`.
@@ -26,11 +28,25 @@ COMMAND_MODULES: list[str] = [
 ]
 
 
+EPILOG = """\
+Run `toolkit <command> --help` for the options and examples of each command.
+
+environment:
+  EDGEFEAT_DATA           data folder with train_images/, hpatches_v_dogman/, lowlight_pairs/ (default: ../shared/data
+                          from the working directory or beside the source tree); prune's default images and metrics
+  EDGEFEAT_ALIKE_WEIGHTS  folder of the ALIKE/ALIKED teacher weights (default: ../shared/data/weights_alike)
+  EDGEFEAT_TRACEBACK=1    show the traceback of an internal error instead of its one-line summary
+
+Exit codes: 0 done, 2 bad input (one `error:` line on stderr), 1 internal error, 130 interrupted.
+"""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineArgumentParser(
         prog="toolkit",
         description="EdgeFeat: put a depthwise-separable, deformable keypoint network on a Jetson TX2 or an x86 CPU.",
-        epilog="Run `toolkit <command> --help` for the options and examples of each command.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"edgefeat {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="<command>")
@@ -41,16 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except (ToolkitError, VORuntimeError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
-        return 130
+    return run_guarded(build_parser(), argv, (ToolkitError, VORuntimeError))
 
 
 if __name__ == "__main__":

@@ -1,4 +1,7 @@
 """Errors raised by vo_runtime. Apps embedding the runtime catch `VORuntimeError`."""
+from __future__ import annotations
+
+MESSAGE_LIMIT = 240  # characters of a foreign exception's text quoted in one of our one-line messages
 
 
 class VORuntimeError(Exception):
@@ -11,3 +14,17 @@ class ArtefactError(VORuntimeError):
 
 class CalibrationError(VORuntimeError):
     """The camera calibration is missing, malformed, or does not fit the frames."""
+
+
+class FrameError(VORuntimeError):
+    """A frame cannot be used: undecodable, empty, of an unusable shape or dtype, or holding NaN/inf."""
+
+
+def first_line(exc: BaseException, limit: int = MESSAGE_LIMIT) -> str:
+    """The first non-blank line of ``str(exc)``, shortened to ``limit``; the class name when the text is empty.
+
+    Foreign exceptions (torch, onnxruntime, OpenCV) may carry empty or many-line messages; ours are one line.
+    """
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    text = lines[0] if lines else type(exc).__name__
+    return text if len(text) <= limit else text[: limit - 3] + "..."

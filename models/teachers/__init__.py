@@ -22,6 +22,7 @@ from models.teachers.alike import ALIKE_CONFIGS, load_alike
 from models.teachers.aliked import ALIKED_CONFIGS, load_aliked
 from models.teachers.classical import ShiTomasiTeacher
 from toolkit.errors import ToolkitError
+from vo_runtime.errors import first_line
 
 Teacher = Callable[[torch.Tensor], torch.Tensor]
 
@@ -48,7 +49,7 @@ def build_teacher(name: str, weights_dir: str | Path | None = None) -> nn.Module
         try:
             return loader(name, folder)
         except Exception as exc:  # torch.load raises many types (zip, pickle, shape): one message
-            raise ToolkitError(f"teacher {name}: cannot load {path}: {str(exc).splitlines()[0][:160]}") from None
+            raise ToolkitError(f"teacher {name}: cannot load {path}: {first_line(exc)}") from None
     if name.startswith("superpoint:"):
         from models.teachers.superpoint import load_superpoint_teacher
 
@@ -58,7 +59,7 @@ def build_teacher(name: str, weights_dir: str | Path | None = None) -> nn.Module
         try:
             return load_superpoint_teacher(path)
         except Exception as exc:  # torch.load raises many types (zip, pickle, shape): one message
-            raise ToolkitError(f"teacher superpoint: cannot load {path}: {str(exc).splitlines()[0][:160]}") from None
+            raise ToolkitError(f"teacher superpoint: cannot load {path}: {first_line(exc)}") from None
     if name == "shi-tomasi":
         return ShiTomasiTeacher()
     raise ToolkitError(f"unknown teacher {name!r} (expected one of: {', '.join(TEACHER_NAMES)})")

@@ -22,6 +22,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from models.torch_files import load_weights_only
+
 
 @dataclass(frozen=True)
 class AlikeConfig:
@@ -155,6 +157,6 @@ class Alike(nn.Module):
 def load_alike(name: str, weights_dir: Path) -> Alike:
     """Build ``name`` (alike-t|s|n|l) and load ``weights_dir/<name>.pth`` strictly (every key must match)."""
     model = Alike(ALIKE_CONFIGS[name])
-    state = torch.load(Path(weights_dir) / f"{name}.pth", map_location="cpu", weights_only=True)
+    state = load_weights_only(Path(weights_dir) / f"{name}.pth")
     model.load_state_dict(state, strict=True)
     return model.eval()

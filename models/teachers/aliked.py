@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from models.deform import deform_conv2d
+from models.torch_files import load_weights_only
 from models.teachers.alike import ConvBlock, ResidualBlock, gray_to_rgb, pad_to_multiple, upsample_to
 
 
@@ -125,6 +126,6 @@ class Aliked(nn.Module):
 def load_aliked(name: str, weights_dir: Path) -> Aliked:
     """Build ``name`` (aliked-t16|n16) and load ``weights_dir/<name>.pth`` strictly (every key must match)."""
     model = Aliked(ALIKED_CONFIGS[name])
-    state = torch.load(Path(weights_dir) / f"{name}.pth", map_location="cpu", weights_only=True)
+    state = load_weights_only(Path(weights_dir) / f"{name}.pth")
     model.load_state_dict(state, strict=True)
     return model.eval()

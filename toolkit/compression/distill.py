@@ -95,7 +95,7 @@ def distill(
         pool = torch.from_numpy(load_images(images, config.images, config.size)[0])
     losses: list[float] = []
     tick = time.perf_counter()
-    for step in tqdm(range(config.steps), desc="distil", disable=not progress, leave=False):
+    for step in tqdm(range(config.steps), desc="distil", disable=None if progress else True, leave=False):
         if pairs is not None:
             samples = [pairs[step * config.batch + i] for i in range(config.batch)]
             batch = {key: torch.stack([s[key] for s in samples]) for key in samples[0]}

@@ -17,6 +17,7 @@ from torch import nn
 
 from models.keypoints import extract_keypoints, heatmap_from_logits
 from toolkit.errors import ToolkitError
+from vo_runtime.errors import first_line
 
 KEYPOINT_BUDGET = 500
 
@@ -77,7 +78,7 @@ def ort_session(model: onnx.ModelProto | str, threads: int = 1):
     try:
         return ort.InferenceSession(source, options, providers=["CPUExecutionProvider"])
     except Exception as exc:  # onnxruntime raises several unrelated types
-        raise ToolkitError(f"onnxruntime cannot load the model: {str(exc).splitlines()[0][:200]}") from None
+        raise ToolkitError(f"onnxruntime cannot load the model: {first_line(exc)}") from None
 
 
 def ort_drift(reference, candidate, images: np.ndarray) -> Drift:

@@ -100,7 +100,7 @@ def evaluate_model(detector: Detector, pairs: list[ImagePair], config: EvalConfi
     """Detect on both images of every pair (a progress bar on stderr) and compute each pair's metrics."""
     result = ModelResult(detector.label, detector.kind, dict(detector.settings))
     detections = RecentCache()
-    for index, pair in enumerate(tqdm(pairs, desc=f"eval {detector.label}", unit="pair", leave=False)):
+    for index, pair in enumerate(tqdm(pairs, desc=f"eval {detector.label}", unit="pair", leave=False, disable=None)):
         image_a, scale_a = images.get(pair.path_a)
         image_b, scale_b = images.get(pair.path_b)
         detection_a: Detection = detections.get(str(pair.path_a), lambda: detector(image_a))

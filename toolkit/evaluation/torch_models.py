@@ -14,6 +14,7 @@ from torch import nn
 
 from toolkit.errors import ToolkitError
 from toolkit.evaluation.detectors import Detection, Detector, DetectorConfig
+from vo_runtime.errors import first_line
 
 CELL = 8
 
@@ -67,8 +68,8 @@ def superpoint_detector(path: Path, config: DetectorConfig, label: str) -> Detec
 
     try:
         model = load_superpoint_v1(path)
-    except (ValueError, RuntimeError, OSError, EOFError) as exc:
-        raise ToolkitError(f"cannot load SuperPoint weights {path}: {str(exc).splitlines()[0]}") from None
+    except (ValueError, RuntimeError, OSError) as exc:
+        raise ToolkitError(f"cannot load SuperPoint weights {path}: {first_line(exc)}") from None
     return _network_detector(model, config, label, "superpoint", {"weights": str(path), "arch": "superpoint"})
 
 

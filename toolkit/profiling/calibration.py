@@ -240,7 +240,7 @@ def export_micro_layers(height: int, width: int) -> dict[str, onnx.ModelProto]:
     """Every micro-layer as an ONNX graph (opset 19, onnxruntime's DeformConv)."""
     torch.manual_seed(0)
     graphs = {}
-    for name, (module, shape) in tqdm(micro_layers(height, width).items(), desc="micro-layers", leave=False):
+    for name, (module, shape) in tqdm(micro_layers(height, width).items(), desc="micro-layers", leave=False, disable=None):
         graphs[name] = trace_to_onnx(module.eval(), torch.rand(shape), 19, ("out",))
     return graphs
 

@@ -135,7 +135,7 @@ def build_report(sources: list[ModelSource], profiles: list[TargetProfile], hard
     height, width = size
     models = []
     host_graphs: dict[str, onnx.ModelProto] = {}
-    for source in tqdm(sources, desc="counting and exporting", leave=False):
+    for source in tqdm(sources, desc="counting and exporting", leave=False, disable=None):
         counts = count_model(source, height, width, profiles[0].default_max_keypoints)
         entry = {"name": source.name, "origin": source.origin, **counts, "targets": {}}
         for profile in profiles:

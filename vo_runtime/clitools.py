@@ -1,0 +1,68 @@
+"""What both command lines (`toolkit` and `python -m vo_runtime`) share: bad input is one `error:` line.
+
+- `OneLineArgumentParser` keeps argparse's usage text for ``--help`` but reports a bad option as one line.
+- `run_guarded` parses, runs, and turns every failure into one ``error:`` line on stderr: exit 2 for bad
+  input (the given error types, unreadable/unwritable files, out of memory), 130 for Ctrl-C, and 1 for an
+  unexpected failure (a bug: ``EDGEFEAT_TRACEBACK=1`` shows its traceback).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import NoReturn, Sequence
+
+from vo_runtime.errors import first_line
+
+BAD_INPUT, INTERNAL_ERROR, INTERRUPTED = 2, 1, 130
+TRACEBACK_VARIABLE = "EDGEFEAT_TRACEBACK"
+
+
+class OneLineArgumentParser(argparse.ArgumentParser):
+    """argparse with one-line errors; sub-parsers inherit the class (argparse uses ``type(self)``)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(BAD_INPUT, f"error: {self.prog}: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
+def silence_native_logs() -> None:
+    """OpenCV logs its own '[ERROR:...]' line for a corrupt image before we report it: keep stderr to ours."""
+    try:
+        import cv2
+
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    except (ImportError, AttributeError):  # an OpenCV without the logging module prints nothing to silence
+        pass
+
+
+def _report(message: str) -> None:
+    print(f"error: {' '.join(message.split())}", file=sys.stderr)
+
+
+def run_guarded(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
+                user_errors: tuple[type[BaseException], ...]) -> int:
+    """Parse ``argv`` and run ``args.func(args)``; return the exit code, never raise (see the module doc)."""
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a bad option, already reported in one line (2)
+        return exc.code if isinstance(exc.code, int) else BAD_INPUT
+    silence_native_logs()
+    try:
+        return int(args.func(args) or 0)
+    except user_errors as exc:
+        _report(first_line(exc))
+    except MemoryError:
+        _report("out of memory: use a smaller input size, batch or image count")
+    except OSError as exc:  # a file we could not read or write (full disk, permissions)
+        where = f": {exc.filename}" if exc.filename else ""
+        _report(f"{exc.strerror or first_line(exc)}{where}")
+    except KeyboardInterrupt:
+        _report("interrupted")
+        return INTERRUPTED
+    except Exception as exc:  # noqa: BLE001 - the last resort: a bug, still one line unless asked for more
+        if os.environ.get(TRACEBACK_VARIABLE):
+            raise
+        _report(f"internal error ({type(exc).__name__}: {first_line(exc)}); rerun with {TRACEBACK_VARIABLE}=1 "
+                "for the traceback and report it")
+        return INTERNAL_ERROR
+    return BAD_INPUT
