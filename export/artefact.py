@@ -6,7 +6,7 @@ passed: the artefact is assembled in a temporary sibling directory and renamed i
 from __future__ import annotations
 
 import json
-import tempfile
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,15 +17,17 @@ import torch
 from export.checks import check_against_profile, require_non_negative_gathers
 from export.graphs import DENSE_OUTPUTS, KEYPOINT_OUTPUTS, DenseGraph, KeypointGraph
 from export.onnx_export import export_onnx, op_histogram
-from export.parity import default_parity_paths, images_in, measure_parity, prepare_image
+from export.parity import MIN_PARITY_KEYPOINTS, default_parity_paths, images_in, measure_parity, prepare_parity_image
 from export.readme import artefact_readme
 from models.checkpoint import load_checkpoint
 from models.deform import set_deform_strategy
 from profiles import TargetProfile, load_profile
 from toolkit import __version__
-from toolkit.atomic import atomic_directory
+from toolkit.atomic import OutputKind, atomic_directory, check_output_dir
 from toolkit.errors import ToolkitError
-from vo_runtime.artefact import ARTEFACT_FORMAT, MANIFEST_NAME, MODEL_NAME, sha256_file
+from toolkit.sizes import MAX_SIDE, MIN_SIDE
+from vo_runtime.artefact import ARTEFACT_FORMAT, MANIFEST_NAME, MODEL_NAME, load_manifest, sha256_file
+from vo_runtime.errors import ArtefactError
 
 # FP16 weights move scores by ~1e-3, enough to reorder near-tied keypoints at the top-K cut.
 MIN_IDENTICAL = {"fp32": 0.99, "fp16": 0.90}
@@ -47,24 +49,23 @@ class ExportOptions:
     parity_images: Path | None = None
 
 
-def _check_output_dir(output: Path, force: bool) -> None:
-    if output.exists():
-        if not output.is_dir():
-            raise ToolkitError(f"output {output} exists and is not a directory")
-        if (output / MANIFEST_NAME).exists() and not force:
-            raise ToolkitError(f"{output} already holds an artefact; pass --force to replace it")
-        if any(output.iterdir()) and not force:
-            raise ToolkitError(f"{output} is not empty; pass --force to replace it")
-    ancestor = output.resolve().parent
-    while not ancestor.exists():
-        ancestor = ancestor.parent
+ARTEFACT_FILES = (MODEL_NAME, MANIFEST_NAME, "README.md")
+
+
+def artefact_manifest(directory: Path) -> dict | None:
+    """The manifest of an artefact directory, or None when there is no readable one (never raises)."""
     try:
-        if not ancestor.is_dir():
-            raise NotADirectoryError(ancestor)
-        with tempfile.TemporaryFile(dir=ancestor):  # a real write: permission bits lie to root and on read-only mounts
-            pass
-    except OSError:
-        raise ToolkitError(f"output directory {output} is not writable") from None
+        return load_manifest(directory)
+    except ArtefactError:
+        return None
+
+
+# What --force may replace: an artefact this command wrote before (a manifest without a quantisation record).
+EXPORTED_ARTEFACT = OutputKind(
+    "an artefact written by toolkit export",
+    lambda path: (manifest := artefact_manifest(path)) is not None and "quantisation" not in manifest,
+    lambda name: name in ARTEFACT_FILES,
+)
 
 
 def _to_fp16(model: onnx.ModelProto) -> onnx.ModelProto:
@@ -75,15 +76,28 @@ def _to_fp16(model: onnx.ModelProto) -> onnx.ModelProto:
 
 def _resolve(options: ExportOptions, profile: TargetProfile) -> tuple[tuple[int, int], str, int]:
     size = options.input_size or profile.default_input_size
-    if size[0] % 8 or size[1] % 8 or min(size) < 16:
-        raise ToolkitError(f"input size {size[0]}x{size[1]} must be at least 16x16 and divisible by 8")
+    if size[0] % 8 or size[1] % 8 or min(size) < MIN_SIDE or max(size) > MAX_SIDE:
+        raise ToolkitError(f"input size {size[0]}x{size[1]}: each side must be between {MIN_SIDE} and {MAX_SIDE} "
+                           "and divisible by 8")
     precision = options.precision or profile.default_precision
     if precision not in profile.precisions:
         raise ToolkitError(f"precision {precision} is not available for {profile.name} (choose from {', '.join(profile.precisions)})")
-    keypoints = options.max_keypoints or profile.default_max_keypoints
+    keypoints = profile.default_max_keypoints if options.max_keypoints is None else options.max_keypoints
     if not 1 <= keypoints <= size[0] * size[1] // 4:
-        raise ToolkitError(f"--max-keypoints must be between 1 and {size[0] * size[1] // 4} at {size[0]}x{size[1]}")
+        raise ToolkitError(f"--max-keypoints must be between 1 and {size[0] * size[1] // 4} at {size[0]}x{size[1]}, got {keypoints}")
+    _check_postprocess(options, size)
     return size, precision, keypoints
+
+
+def _check_postprocess(options: ExportOptions, size: tuple[int, int]) -> None:
+    """Refuse settings that leave no keypoints or no valid graph (a NaN threshold also made invalid JSON)."""
+    if not (math.isfinite(options.threshold) and 0.0 <= options.threshold < 1.0):
+        raise ToolkitError(f"--threshold is a keypoint probability: it must be in [0, 1), got {options.threshold}")
+    if not 0 <= options.border < min(size) // 4:
+        raise ToolkitError(f"--border must be between 0 and {min(size) // 4 - 1} px at {size[0]}x{size[1]}, got {options.border}")
+    if not 0 <= options.nms_radius < min(size) // 4:
+        raise ToolkitError(f"--nms-radius must be between 0 and {min(size) // 4 - 1} px at {size[0]}x{size[1]}, "
+                           f"got {options.nms_radius}")
 
 
 def export_artefact(options: ExportOptions, log=print) -> Path:
@@ -91,7 +105,10 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
     profile = load_profile(options.target)
     (height, width), precision, max_keypoints = _resolve(options, profile)
     output = Path(options.output)
-    _check_output_dir(output, options.force)
+    check_output_dir(output, EXPORTED_ARTEFACT, options.force)
+    # Every input is read before the first export step, so a bad one fails in a second.
+    paths = images_in(options.parity_images) if options.parity_images else default_parity_paths()
+    images = [prepare_parity_image(path, height, width) for path in paths]
     from models.weights import resolve_checkpoint
 
     net, info = load_checkpoint(resolve_checkpoint(options.checkpoint))
@@ -112,11 +129,13 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
     keypoint_model = _to_fp16(keypoint_export.model) if onnx_fp16 else keypoint_export.model
     dense_model = _to_fp16(dense_export.model) if onnx_fp16 else dense_export.model
 
-    paths = images_in(options.parity_images) if options.parity_images else default_parity_paths()
-    images = [prepare_image(path, height, width) for path in paths]
     parity = measure_parity(keypoint_module, keypoint_model, dense_module, dense_model, images, [p.name for p in paths])
     lowest_gather = require_non_negative_gathers(keypoint_model, images, profile)
     required = MIN_IDENTICAL["fp16" if onnx_fp16 else "fp32"]
+    compared = sum(parity.num_valid_torch)
+    if compared < MIN_PARITY_KEYPOINTS:
+        raise ToolkitError(f"parity failed: PyTorch found only {compared} keypoints on {len(paths)} parity images "
+                           f"(need {MIN_PARITY_KEYPOINTS} to compare); use images with more texture or a lower --threshold")
     if parity.keypoints_identical < required:
         raise ToolkitError(
             f"parity failed: only {parity.keypoints_identical:.1%} of keypoints identical to PyTorch (need {required:.0%})"

@@ -16,6 +16,7 @@ import torch
 from torch import nn
 
 from toolkit.errors import ToolkitError
+from vo_runtime.errors import first_line
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp")
 # Real images with texture, dark frames and a viewpoint change: two HPatches frames and a LOL low/high pair.
@@ -58,24 +59,55 @@ def default_parity_paths() -> list[Path]:
     return paths
 
 
+# A parity run proves something only on real content: a single flat 4x4 image once read 99.8 % identical.
+MIN_PARITY_IMAGES = 2
+MIN_PARITY_SIDE = 64        # px, each side of each source image
+MIN_PARITY_CONTRAST = 4.0   # grey levels of standard deviation: less is a flat image
+MIN_PARITY_KEYPOINTS = 50   # PyTorch keypoints compared over all images
+
+
 def images_in(directory: str | Path, limit: int = 4) -> list[Path]:
+    """Up to ``limit`` parity images of ``directory``, at least `MIN_PARITY_IMAGES` of them."""
     directory = Path(directory)
     if not directory.is_dir():
         raise ToolkitError(f"parity image folder not found: {directory}")
-    paths = sorted(p for p in directory.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES)[:limit]
-    if not paths:
-        raise ToolkitError(f"no images in {directory}")
+    paths = sorted(p for p in directory.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)[:limit]
+    if len(paths) < MIN_PARITY_IMAGES:
+        raise ToolkitError(f"{directory} holds {len(paths)} image(s); a parity run needs at least {MIN_PARITY_IMAGES}")
     return paths
+
+
+def read_gray(path: Path) -> np.ndarray:
+    """An image file as HxW uint8 gray; `ToolkitError` when it cannot be read."""
+    data = np.fromfile(str(path), dtype=np.uint8) if path.is_file() else np.zeros(0, np.uint8)
+    gray = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+    if gray is None:
+        raise ToolkitError(f"cannot read image {path}")
+    return gray
+
+
+def resize_and_scale(gray: np.ndarray, height: int, width: int) -> np.ndarray:
+    """INTER_AREA resize to (height, width), scale to [0, 1]: [1, 1, H, W] float32, as the runtime prepares frames."""
+    if gray.shape != (height, width):
+        gray = cv2.resize(gray, (width, height), interpolation=cv2.INTER_AREA)
+    return (gray.astype(np.float32) / 255.0)[None, None]
 
 
 def prepare_image(path: Path, height: int, width: int) -> np.ndarray:
     """Read as gray, resize with INTER_AREA, scale to [0, 1]: [1, 1, H, W] float32."""
-    gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if gray is None:
-        raise ToolkitError(f"cannot read parity image {path}")
-    if gray.shape != (height, width):
-        gray = cv2.resize(gray, (width, height), interpolation=cv2.INTER_AREA)
-    return (gray.astype(np.float32) / 255.0)[None, None]
+    return resize_and_scale(read_gray(path), height, width)
+
+
+def prepare_parity_image(path: Path, height: int, width: int) -> np.ndarray:
+    """`prepare_image` for a parity image, refusing one too small or too flat to show a difference."""
+    gray = read_gray(path)
+    if min(gray.shape) < MIN_PARITY_SIDE:
+        raise ToolkitError(f"parity image {path} is {gray.shape[1]}x{gray.shape[0]}; each side must be at least "
+                           f"{MIN_PARITY_SIDE} px")
+    if float(gray.std()) < MIN_PARITY_CONTRAST:
+        raise ToolkitError(f"parity image {path} is flat (grey-level spread {gray.std():.1f} < {MIN_PARITY_CONTRAST}): "
+                           "parity needs images with texture")
+    return resize_and_scale(gray, height, width)
 
 
 def _session(model: onnx.ModelProto):
@@ -86,7 +118,7 @@ def _session(model: onnx.ModelProto):
     try:
         return ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
     except Exception as exc:  # onnxruntime raises several unrelated types
-        raise ToolkitError(f"onnxruntime cannot load the exported graph: {str(exc).splitlines()[0]}") from None
+        raise ToolkitError(f"onnxruntime cannot load the exported graph: {first_line(exc)}") from None
 
 
 def _pixel_keys(keypoints: np.ndarray) -> dict[tuple[int, int], int]:
@@ -128,7 +160,7 @@ def measure_parity(
             coarse_diff = max(coarse_diff, float(np.abs(dense_ref[1] - dense_exp[1]).max()))
     return ParityReport(
         images=names,
-        keypoints_identical=found / total if total else 1.0,
+        keypoints_identical=found / total if total else 0.0,  # nothing compared proves nothing
         num_valid_torch=valid_torch,
         num_valid_onnx=valid_onnx,
         scores_max_abs_diff=score_diff,

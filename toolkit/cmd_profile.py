@@ -73,7 +73,7 @@ def _check_args(args: argparse.Namespace) -> None:
 
 def _size(args: argparse.Namespace, sources, profiles: list[TargetProfile]) -> tuple[int, int]:
     if args.input_size:
-        return parse_size(args.input_size)
+        return parse_size(args.input_size, "--input-size")
     sizes = {s.artefact_size for s in sources if s.artefact_size is not None}
     if len(sizes) > 1:
         raise ToolkitError("the artefacts were exported for different input sizes: profile them separately or pass --input-size")
@@ -85,12 +85,16 @@ def run(args: argparse.Namespace) -> int:
     profiles = _profiles(args.target)
     if args.calibrate:
         return _run_calibration(args, profiles)
+    from toolkit.profiling.report import check_report_dir
+
+    if args.output:  # before minutes of measuring, not after
+        check_report_dir(args.output, args.force)
     from toolkit.profiling.profile import build_report
     from toolkit.profiling.report import terminal_text, write_outputs
     from toolkit.profiling.roofline import hardware_model, load_calibration
     from toolkit.profiling.sources import resolve_model
 
-    requested = parse_size(args.input_size) if args.input_size else None
+    requested = parse_size(args.input_size, "--input-size") if args.input_size else None
     specs = list(args.model or ["default"])
     if not args.no_compare and "superpoint" not in specs:
         specs.append("superpoint")
@@ -118,6 +122,22 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_calibration_target(path: Path) -> None:
+    """The calibration file is written only where nothing is, or over an earlier calibration file."""
+    from toolkit.atomic import check_output_path
+    from toolkit.profiling.roofline import load_calibration
+
+    check_output_path(path)
+    if path.is_dir():
+        raise ToolkitError(f"--calibration {path} is a directory; name a .json file")
+    if path.exists():
+        try:
+            load_calibration(path)
+        except ToolkitError:
+            raise ToolkitError(f"refusing to overwrite {path}: it is not a calibration file written by "
+                               "toolkit profile --calibrate") from None
+
+
 def _run_calibration(args: argparse.Namespace, profiles: list[TargetProfile]) -> int:
     from toolkit.profiling.calibration import calibrate
     from toolkit.profiling.profile import target_graph
@@ -130,11 +150,12 @@ def _run_calibration(args: argparse.Namespace, profiles: list[TargetProfile]) ->
         raise ToolkitError("--calibrate measures this host: use --target x86-cpu (or all)")
     if args.model:
         raise ToolkitError("--calibrate uses its own set of networks (featurenet, featurenet-relu, superpoint); drop --model")
-    height, width = parse_size(args.input_size) if args.input_size else host.default_input_size
+    height, width = parse_size(args.input_size, "--input-size") if args.input_size else host.default_input_size
+    path = args.calibration or default_calibration_path()
+    _check_calibration_target(path)
     prior = hardware_model(host)  # the shipped figures: the fit's fallback where the data is silent
     networks = {name: target_graph(resolve_model(name, None), host, height, width).model for name in ARCHITECTURES}
     result = calibrate(networks, height, width, args.threads, args.repeats, args.warmup, prior)
-    path = args.calibration or default_calibration_path()
     write_json_atomic(result.to_json_dict() | {"input_size": [height, width]}, path)
     caches = ", ".join(f"{c['bytes'] >> 10} KiB: {c['bandwidth_gbs']:.1f} GB/s" for c in result.cache_levels)
     print(f"host {result.host}, {args.threads} thread(s), {height}x{width}: peak {result.peak_gflops_fp32:.1f} GFLOP/s "

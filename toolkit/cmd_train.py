@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from toolkit.atomic import check_output_path
 from toolkit.training.trainer import TrainConfig, read_config_file, resolve_config, train
 
 EPILOG = """examples:
@@ -26,8 +27,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.resume and args.config:
         raise ToolkitError("--config cannot be combined with --resume: a resumed run keeps its own config")
-    config = read_config_file(args.config) if args.config else TrainConfig()
     run_dir = Path(args.out)
+    check_output_path(run_dir)  # a run folder below a regular file cannot be made: say so before reading anything
+    config = read_config_file(args.config) if args.config else TrainConfig()
     config = resolve_config(run_dir, args.resume, config, args.steps, args.batch)
     if args.workers is not None:  # allowed on --resume too: samples do not depend on the worker count
         if args.workers < 0:

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 
-from export.artefact import MIN_IDENTICAL
+from export.artefact import ARTEFACT_FILES, MIN_IDENTICAL, artefact_manifest
 from export.checks import check_against_profile, require_non_negative_gathers
 from export.onnx_export import op_histogram
 from export.parity import default_parity_paths, prepare_image
@@ -28,7 +28,7 @@ from export.parity import SHIPPED_PARITY_DIR
 from toolkit.compression.images import load_images
 from toolkit.compression.report import interleaved_median_ms, ort_drift, ort_session
 from toolkit.compression.sensitivity import head_output_convs, layer_sensitivity
-from toolkit.atomic import atomic_directory
+from toolkit.atomic import OutputKind, atomic_directory, check_output_dir
 from toolkit.errors import ToolkitError
 from vo_runtime.artefact import MANIFEST_NAME, MODEL_NAME, sha256_file, verify_artefact
 
@@ -107,11 +107,18 @@ def quantise_fp16(model: onnx.ModelProto) -> onnx.ModelProto:
     return convert_float_to_float16(model, keep_io_types=True)
 
 
+# What --force may replace: an artefact this command wrote before (its manifest records the quantisation).
+QUANTISED_ARTEFACT = OutputKind(
+    "a quantised artefact written by toolkit quantise",
+    lambda path: (manifest := artefact_manifest(path)) is not None and "quantisation" in manifest,
+    lambda name: name in ARTEFACT_FILES,
+)
+
+
 def _check_output(output: Path, force: bool, source: Path) -> None:
     if output.resolve() == source.resolve():
         raise ToolkitError("the quantised artefact needs its own directory (-o must differ from --artefact)")
-    if output.exists() and (not output.is_dir() or (any(output.iterdir()) and not force)):
-        raise ToolkitError(f"{output} exists and is not empty; pass --force to replace it")
+    check_output_dir(output, QUANTISED_ARTEFACT, force)
 
 
 def _parity_images(height: int, width: int) -> tuple[np.ndarray, list[str]]:

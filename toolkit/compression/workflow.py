@@ -2,21 +2,24 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
 
-from models.checkpoint import load_checkpoint, save_checkpoint
+from models.checkpoint import checkpoint_metadata, load_checkpoint, save_checkpoint
 from models.featurenet import FeatureNet
 from toolkit.compression.distill import DistillConfig, DistillResult, distill
 from toolkit.compression.images import default_image_dir, load_images
 from toolkit.compression.prune import (count_macs, count_parameters, prune_channels, ratio_for_target_macs,
                                        rebuild)
 from toolkit.compression.report import Drift, interleaved_median_ms, torch_drift
+from toolkit.atomic import check_output_path
 from toolkit.errors import ToolkitError
 
 MEASURE_IMAGES = 8  # drift images; spread over the image folder
+MAX_BATCH = 64  # images per distillation step; far more runs out of memory at 240x320 on a CPU
 
 
 @dataclass
@@ -90,6 +93,55 @@ def evaluation_metrics(models: dict[str, FeatureNet], size: tuple[int, int]) -> 
     return results, f"evaluation metrics: {len(pairs)} pairs (HPatches v_dogman, LOL low->high) at {size[0]}x{size[1]}"
 
 
+def _is_prune_report(path: Path) -> bool:
+    try:
+        report = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(report, dict) and {"widths_before", "widths_after", "ratio"} <= set(report)
+
+
+def _is_pruned_checkpoint(path: Path) -> bool:
+    metadata = checkpoint_metadata(path)
+    return metadata is not None and "pruning" in metadata
+
+
+def check_prune_output(output: Path, checkpoint: Path, force: bool) -> None:
+    """The pruned checkpoint and its ``.json`` report may replace only an earlier prune's (with ``force``),
+    never the source checkpoint or any other file."""
+    check_output_path(output)
+    if output.suffix != ".safetensors":
+        raise ToolkitError(f"output must be a .safetensors checkpoint, got {output}")
+    if output.resolve() == checkpoint.resolve():
+        raise ToolkitError(f"-o {output} is the checkpoint being pruned: pruning never replaces its source")
+    for path, is_own, what in ((output, _is_pruned_checkpoint, "a checkpoint written by toolkit prune"),
+                               (output.with_suffix(".json"), _is_prune_report, "a report written by toolkit prune")):
+        if not (path.exists() or path.is_symlink()):
+            continue
+        if not path.is_file() or not is_own(path):
+            raise ToolkitError(f"refusing to overwrite {path}: it is not {what}")
+        if not force:
+            raise ToolkitError(f"{path} exists; pass --force to replace it")
+
+
+def _check_numbers(options: PruneOptions) -> None:
+    """Refuse out-of-range settings before any file is read."""
+    if (options.ratio is None) == (options.target_macs is None):
+        raise ToolkitError("give exactly one of --ratio and --target-macs")
+    if options.ratio is not None and not 0.0 < options.ratio < 1.0:  # NaN fails too
+        raise ToolkitError(f"--ratio must be in (0, 1), got {options.ratio}")
+    if options.target_macs is not None and options.target_macs <= 0:
+        raise ToolkitError(f"--target-macs must be positive, got {options.target_macs}")
+    if options.steps < 0:
+        raise ToolkitError(f"--steps must be >= 0, got {options.steps}")
+    if not 1 <= options.batch <= MAX_BATCH:
+        raise ToolkitError(f"--batch must be between 1 and {MAX_BATCH}, got {options.batch}")
+    if not (math.isfinite(options.lr) and options.lr > 0):
+        raise ToolkitError(f"--lr must be a positive number, got {options.lr}")
+    if options.labels is not None and options.images is None:
+        raise ToolkitError("--labels needs --images (the folder the labels were made for)")
+
+
 def default_output(checkpoint: Path, ratio: float) -> Path:
     return checkpoint.with_name(f"{checkpoint.stem}-pruned{round(ratio * 100)}.safetensors")
 
@@ -100,18 +152,7 @@ def _widths(model: FeatureNet) -> dict:
 
 def prune_checkpoint(options: PruneOptions, log=print, progress: bool = True) -> PruneReport:
     """Prune, distil and save; returns the before/after report (also stored in the checkpoint metadata)."""
-    if (options.ratio is None) == (options.target_macs is None):
-        raise ToolkitError("give exactly one of --ratio and --target-macs")
-    if options.ratio is not None and not 0.0 < options.ratio < 1.0:
-        raise ToolkitError(f"--ratio must be in (0, 1), got {options.ratio}")
-    if options.target_macs is not None and options.target_macs <= 0:
-        raise ToolkitError(f"--target-macs must be positive, got {options.target_macs}")
-    if options.steps < 0:
-        raise ToolkitError(f"--steps must be >= 0, got {options.steps}")
-    if options.batch < 1:
-        raise ToolkitError(f"--batch must be >= 1, got {options.batch}")
-    if options.labels is not None and options.images is None:
-        raise ToolkitError("--labels needs --images (the folder the labels were made for)")
+    _check_numbers(options)
     from models.weights import WEIGHTS_DIR, resolve_checkpoint
 
     checkpoint = resolve_checkpoint(options.checkpoint)
@@ -130,10 +171,7 @@ def prune_checkpoint(options: PruneOptions, log=print, progress: bool = True) ->
     output = Path(options.output) if options.output else default_output(checkpoint, ratio)
     if not options.output and checkpoint.resolve().parent == WEIGHTS_DIR:
         output = Path.cwd() / output.name  # never write beside the shipped weights, inside the package
-    if output.exists() and not options.force:
-        raise ToolkitError(f"{output} exists; pass --force to replace it")
-    if output.suffix != ".safetensors":
-        raise ToolkitError(f"output must be a .safetensors checkpoint, got {output}")
+    check_prune_output(output, checkpoint, options.force)
 
     student = prune_channels(teacher, ratio)
     log(f"pruned {ratio:.0%} of channels: widths {teacher.config.widths} -> {student.config.widths}, "

@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from toolkit.atomic import atomic_directory
-from toolkit.errors import ToolkitError
+from toolkit.atomic import OutputKind, atomic_directory
+from toolkit.atomic import check_output_dir as check_replaceable_dir
 from toolkit.evaluation.metrics import warp_points
 from toolkit.evaluation.runner import PairExample
 
@@ -113,14 +113,16 @@ def plot_matches(example: PairExample, path: Path, label: str, threshold: float 
     figure.savefig(path, dpi=100)
 
 
+# An earlier report is replaced (eval has no --force: its reports are cheap to remake); anything else is refused.
+EVAL_REPORT = OutputKind(
+    "an eval report", lambda path: (path / REPORT_JSON).is_file(),
+    lambda name: name in (REPORT_JSON, REPORT_MARKDOWN) or bool(re.fullmatch(r"matches_.+\.png", name)),
+)
+
+
 def check_output_dir(path: Path) -> None:
-    """Refuse a target that is a file or a non-empty directory that is not a previous report."""
-    if path.is_file():
-        raise ToolkitError(f"output {path} is a file; give a directory name for the report")
-    if path.is_dir() and any(path.iterdir()) and not (path / REPORT_JSON).is_file():
-        raise ToolkitError(f"output {path} is a non-empty directory that is not an eval report; refusing to overwrite")
-    if not path.parent.resolve().is_dir():
-        raise ToolkitError(f"output parent directory not found: {path.parent}")
+    """Refuse a target below a file, a file, or a non-empty directory that is not only a previous report."""
+    check_replaceable_dir(path, EVAL_REPORT, force=True)
 
 
 def write_report(path: Path, report: dict[str, Any], examples: dict[str, PairExample]) -> None:

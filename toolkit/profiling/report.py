@@ -6,8 +6,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from toolkit.atomic import atomic_directory
-from toolkit.errors import ToolkitError
+from toolkit.atomic import OutputKind, atomic_directory, check_output_dir
 
 TOP_LAYERS = 12
 HOST_TARGET = "x86-cpu"  # the target whose prediction is checked against this host's measurement
@@ -142,10 +141,20 @@ def plot_layers(report: dict, path: Path) -> None:
     plt.close(fig)
 
 
+REPORT_FILES = ("profile.json", "profile.md", "profile.png")
+# What --force may replace: a report this command wrote before (its profile.json) and nothing else.
+PROFILE_REPORT = OutputKind("a profile report written by toolkit profile", lambda path: (path / "profile.json").is_file(),
+                            lambda name: name in REPORT_FILES)
+
+
+def check_report_dir(output: Path, force: bool) -> None:
+    """Refuse an output that is not absent, empty, or (with ``force``) an earlier profile report."""
+    check_output_dir(output, PROFILE_REPORT, force)
+
+
 def write_outputs(report: dict, output: Path, force: bool) -> Path:
     """Write profile.json, profile.md and profile.png into ``output`` via a staging directory and a rename."""
-    if output.exists() and (not output.is_dir() or (any(output.iterdir()) and not force)):
-        raise ToolkitError(f"output {output} exists and is not an empty directory; pass --force to replace it")
+    check_report_dir(output, force)
     with atomic_directory(output) as staging:
         (staging / "profile.json").write_text(json.dumps(report, indent=2) + "\n")
         (staging / "profile.md").write_text(markdown_text(report))

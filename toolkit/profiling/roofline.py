@@ -200,6 +200,8 @@ def load_calibration(path: Path) -> dict | None:
         data = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
         raise ToolkitError(f"calibration file {path} is not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise ToolkitError(f"calibration file {path} is not a JSON object")
     missing = [key for key in ("memory_bandwidth_gbs", "overhead_us", "efficiency", "peak_gflops_fp32") if key not in data]
     if missing:
         raise ToolkitError(f"calibration file {path} is missing the field '{missing[0]}'")
