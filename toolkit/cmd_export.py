@@ -47,7 +47,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     options = ExportOptions(
-        target=args.target, output=args.output, checkpoint=args.checkpoint, input_size=parse_size(args.input_size) if args.input_size else None,
+        target=args.target, output=args.output, checkpoint=args.checkpoint, input_size=parse_size(args.input_size, "--input-size") if args.input_size else None,
         precision=args.precision, max_keypoints=args.max_keypoints, nms_radius=args.nms_radius,
         threshold=args.threshold, border=args.border, dense=args.dense, force=args.force,
         parity_images=args.parity_images,

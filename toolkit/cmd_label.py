@@ -11,6 +11,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from toolkit.atomic import check_output_path
 from toolkit.errors import ToolkitError
 from toolkit.sizes import parse_size
 from toolkit.training.adaptation import AdaptationConfig, label_image, label_image_with_descriptors
@@ -40,10 +41,47 @@ class LabelSummary:
         return self.labelled / self.seconds if self.seconds > 0 else 0.0
 
 
+MAX_HOMOGRAPHIES = 1000  # warps per image; the paper's adaptation used 100
+
+
 def pick_device(name: str | None = None) -> torch.device:
-    if name:
-        return torch.device(name)
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    """``--device``: cpu or cuda[:N], checked against this machine; the default is cuda when there is one."""
+    if not name:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError):
+        raise ToolkitError(f"--device {name!r}: expected cpu or cuda[:N]") from None
+    if device.type not in ("cpu", "cuda"):
+        raise ToolkitError(f"--device {name!r}: expected cpu or cuda[:N]")
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ToolkitError(f"--device {name}: this torch build sees no CUDA device; use --device cpu")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ToolkitError(f"--device {name}: only {torch.cuda.device_count()} CUDA device(s) here")
+    return device
+
+
+def check_config(config: AdaptationConfig) -> None:
+    """Refuse settings that label nothing or cannot run, before a label folder is created."""
+    height, width = config.size
+    if not 1 <= config.num_homographies <= MAX_HOMOGRAPHIES:
+        raise ToolkitError(f"--num-homographies must be between 1 and {MAX_HOMOGRAPHIES}, got {config.num_homographies}")
+    if not 1 <= config.max_keypoints <= height * width // 4:
+        raise ToolkitError(f"--max-keypoints must be between 1 and {height * width // 4} at {height}x{width}, "
+                           f"got {config.max_keypoints}")
+    if not 0 <= config.nms_radius < min(height, width) // 4:
+        raise ToolkitError(f"--nms-radius must be between 0 and {min(height, width) // 4 - 1} at {height}x{width}, "
+                           f"got {config.nms_radius}")
+
+
+def _remove_new_store(out: Path, existed: bool) -> None:
+    """Undo a first run that labelled nothing: its files, and the folder if this run made it."""
+    for name in ("store.json", "index.json"):
+        (out / name).unlink(missing_ok=True)
+    shutil.rmtree(out / "items", ignore_errors=True)
+    if not existed:
+        shutil.rmtree(out, ignore_errors=True)
 
 
 def label_folder(
@@ -57,8 +95,9 @@ def label_folder(
     """Label every readable image under ``images`` into the store at ``out`` (resumable)."""
     from models.teachers import build_teacher
 
-    if config.num_homographies < 1:
-        raise ToolkitError("--num-homographies must be at least 1")
+    check_config(config)
+    out = Path(out)
+    check_output_path(out)
     files = find_images(images)
     if not files:
         raise ToolkitError(f"no image files in {images}")
@@ -68,12 +107,14 @@ def label_folder(
         raise ToolkitError(f"--descriptors needs a teacher with a descriptor map (alike-t|s|n|l), not {teacher_name}")
     if config.descriptor_stride and any(side % config.descriptor_stride for side in config.size):
         raise ToolkitError(f"--size sides must be multiples of {config.descriptor_stride} with --descriptors")
-    created = not (Path(out) / "store.json").exists()
+    existed = out.exists()
+    created = not (out / "store.json").exists()
     store = LabelStore.create_or_open(out, teacher_name, config.to_dict())
     root = Path(images)
     labelled = skipped = unreadable = 0
     start = time.perf_counter()
-    bar = tqdm(files, desc="label", unit="img", file=sys.stderr, disable=not progress)
+    # disable=None: no bar when stderr is not a terminal, so logs and errors stay line by line
+    bar = tqdm(files, desc="label", unit="img", file=sys.stderr, disable=None if progress else True)
     try:
         for path in bar:
             loaded = read_image(path, config.size)
@@ -99,12 +140,19 @@ def label_folder(
             if labelled % 25 == 0:
                 store.save_index()
             bar.set_postfix(new=labelled, done_before=skipped, unreadable=unreadable)
-    finally:
+    except BaseException:
+        if created and labelled == 0:  # a store that holds nothing would refuse the corrected rerun
+            bar.close()
+            _remove_new_store(out, existed)
+            raise
         store.save_index()
+        raise
+    finally:
         bar.close()
+    store.save_index()
     if labelled + skipped == 0:
         if created:  # leave no empty label folder behind
-            shutil.rmtree(out, ignore_errors=True)
+            _remove_new_store(out, existed)
         raise ToolkitError(f"none of the {len(files)} image files in {images} could be read")
     return LabelSummary(labelled, skipped, unreadable, time.perf_counter() - start)
 
@@ -112,12 +160,13 @@ def label_folder(
 def run(args: argparse.Namespace) -> int:
     if args.threads < 1:
         raise ToolkitError("--threads must be at least 1")
-    torch.set_num_threads(args.threads)
     config = AdaptationConfig(
         num_homographies=args.num_homographies, size=parse_size(args.size), max_keypoints=args.max_keypoints,
         nms_radius=args.nms_radius, descriptor_stride=4 if args.descriptors else 0,
     )
-    summary = label_folder(args.teacher, args.images, args.out, config, pick_device(args.device))
+    device = pick_device(args.device)
+    torch.set_num_threads(args.threads)
+    summary = label_folder(args.teacher, args.images, args.out, config, device)
     print(
         f"labelled {summary.labelled} images ({summary.images_per_second:.2f} images/s), "
         f"{summary.skipped} already labelled, {summary.unreadable} unreadable skipped -> {args.out}"
@@ -134,7 +183,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--teacher", required=True, help="alike-t|alike-s|alike-n|alike-l|aliked-t16|aliked-n16|superpoint:PATH|shi-tomasi")
+    parser.add_argument("--teacher", required=True,
+                        help="alike-t|alike-s|alike-n|alike-l|aliked-t16|aliked-n16|superpoint:PATH|shi-tomasi (ALIKE "
+                        "weights from $EDGEFEAT_ALIKE_WEIGHTS, default ../shared/data/weights_alike)")
     parser.add_argument("--images", required=True, help="folder of images (searched recursively)")
     parser.add_argument("--out", required=True, help="label folder to create or continue")
     parser.add_argument("--num-homographies", type=int, default=100, help="warps per image, identity included (default 100)")

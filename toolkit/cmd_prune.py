@@ -45,7 +45,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     amount = parser.add_mutually_exclusive_group(required=True)
     amount.add_argument("--ratio", type=_ratio, help="fraction of channels to remove per group, in (0, 1)")
     amount.add_argument("--target-macs", type=int, metavar="M", help="smallest pruning that needs at most M MACs at --size")
-    parser.add_argument("--images", type=Path, metavar="DIR", help="images to distil on (default ../shared/data/train_images)")
+    parser.add_argument("--images", type=Path, metavar="DIR", help="images to distil on (default: train_images/ under $EDGEFEAT_DATA, else ../shared/data)")
     parser.add_argument("--labels", type=Path, metavar="L", help="`toolkit label` folder for --images: adds the training loss")
     parser.add_argument("--steps", type=int, default=100, help="distillation steps (default 100; 0 skips fine-tuning)")
     parser.add_argument("--batch", type=int, default=4, help="images per step (default 4)")

@@ -15,7 +15,8 @@ def default_image_dir() -> Path:
     """``../shared/data/train_images`` (or under ``$EDGEFEAT_DATA``); `ToolkitError` if absent."""
     data = shared_data_dir()
     if data is None or not (data / DEFAULT_IMAGE_FOLDER).is_dir():
-        raise ToolkitError("no default image folder (../shared/data/train_images); pass a folder explicitly")
+        raise ToolkitError("no default image folder: train_images/ is neither under $EDGEFEAT_DATA nor in "
+                          "../shared/data; pass --images DIR")
     return data / DEFAULT_IMAGE_FOLDER
 
 

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from toolkit.errors import ToolkitError
+from toolkit.sizes import MAX_SIDE, MIN_SIDE, parse_hxw
 
 HPATCHES_IMAGE_EXTENSIONS = (".ppm", ".png", ".jpg")
 PAIR_IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".bmp")
@@ -164,13 +165,14 @@ def load_gray(path: str | Path) -> np.ndarray:
 
 
 def parse_size(text: str) -> tuple[int, int] | None:
-    """``"240x320"`` -> (240, 320) as (height, width); ``"native"`` -> None."""
+    """``"240x320"`` -> (240, 320) as (height, width), each side within `toolkit.sizes` bounds; ``"native"`` -> None."""
     if text.strip().lower() == "native":
         return None
-    match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
-    if not match or int(match.group(1)) < 16 or int(match.group(2)) < 16:
-        raise ToolkitError(f"bad --size {text!r}: expected HxW such as 240x320 (each >= 16), or native")
-    return int(match.group(1)), int(match.group(2))
+    try:
+        return parse_hxw(text, "--size")
+    except ToolkitError:
+        raise ToolkitError(f"bad --size {text!r}: expected HxW such as 240x320 (each side {MIN_SIDE} to {MAX_SIDE}), "
+                           "or native") from None
 
 
 def resize_with_matrix(image: np.ndarray, size: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray]:
