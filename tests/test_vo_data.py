@@ -80,11 +80,17 @@ def test_black_and_repeated_frames_hold_the_pose_without_crashing(shared_data, t
     assert np.isfinite(np.loadtxt(tmp_path / "run" / "trajectory_kitti.txt")).all()
 
 
-def test_frame_of_another_size_is_a_clean_error(shared_data, tmp_path, capsys):
+def test_frame_of_another_size_is_skipped_and_flagged(shared_data, tmp_path, capsys):
+    # Never tracked with intrinsics that do not fit it: the frame is skipped (pose held) and reported.
     frames = _tum_frames(shared_data, 3)
     folder = _write_frames(tmp_path / "frames", [frames[0], frames[1], cv2.resize(frames[2], (320, 240))])
-    assert main(["--features", "orb", "--images", str(folder), "--calib", "tum-fr2", "--no-progress"]) == 2
-    assert capsys.readouterr().err.strip() == "error: frame is 320x240 but the calibration is for 640x480"
+    assert main(["--features", "orb", "--images", str(folder), "--calib", "tum-fr2", "--no-progress", "--json",
+                 "-o", str(tmp_path / "run")]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["skipped_frames"] == 1
+    assert "frame is 320x240 but the calibration is for 640x480" in captured.err
+    records = json.loads((tmp_path / "run" / "frames.json").read_text())
+    assert records[2]["state"] == "skipped" and "320x240" in records[2]["problem"]
 
 
 def test_missing_or_bad_calibration_is_a_clean_error(shared_data, tmp_path, capsys):

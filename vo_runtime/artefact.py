@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +53,19 @@ def load_manifest(artefact_dir: str | Path) -> dict[str, Any]:
     return manifest
 
 
+def _check_fields(manifest: dict[str, Any], path: Path) -> None:
+    """The fields every reader relies on: the model's checksum and the fixed input shape."""
+    onnx_entry = manifest.get("onnx")
+    expected = onnx_entry.get("sha256") if isinstance(onnx_entry, dict) else None
+    if not isinstance(expected, str) or not re.fullmatch(r"[0-9a-f]{64}", expected):
+        raise ArtefactError(f"{path} records no sha256 for the model (onnx.sha256): it was not written by toolkit "
+                            "export, or was edited; re-export the artefact")
+    entry = manifest.get("input")
+    shape = entry.get("shape") if isinstance(entry, dict) else None
+    if not (isinstance(shape, list) and len(shape) == 4 and all(isinstance(v, int) and v > 0 for v in shape)):
+        raise ArtefactError(f"{path} has no valid input.shape (four positive integers): re-export the artefact")
+
+
 def verify_artefact(artefact_dir: str | Path) -> dict[str, Any]:
     """Load the manifest and check that model.onnx matches its recorded sha256.
 
@@ -59,15 +73,16 @@ def verify_artefact(artefact_dir: str | Path) -> dict[str, Any]:
     """
     directory = Path(artefact_dir)
     manifest = load_manifest(directory)
-    model_path = directory / manifest.get("onnx", {}).get("file", MODEL_NAME)
+    _check_fields(manifest, directory / MANIFEST_NAME)
+    model_path = directory / str(manifest["onnx"].get("file", MODEL_NAME))
     if not model_path.is_file():
         raise ArtefactError(f"{directory}: {model_path.name} is missing")
-    expected = manifest.get("onnx", {}).get("sha256")
+    expected = manifest["onnx"]["sha256"]
     actual = sha256_file(model_path)
     if expected != actual:
         raise ArtefactError(
             f"{model_path} fails its manifest checksum (sha256 {actual[:12]}..., manifest says "
-            f"{str(expected)[:12]}...): the file was changed or truncated after export"
+            f"{expected[:12]}...): the file was changed or truncated after export"
         )
     return manifest
 

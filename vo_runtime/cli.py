@@ -6,22 +6,29 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import shutil
+import math
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
 from vo_runtime.artefact import default_artefact
-from vo_runtime.datasets import CAMERA_PRESETS, open_sequence
-from vo_runtime.errors import VORuntimeError
-from vo_runtime.features import FeatureExtractor, OrbExtractor
-from vo_runtime.odometry import VisualOdometry
-from vo_runtime.sequence import read_frames
+from vo_runtime.clitools import OneLineArgumentParser, run_guarded
+from vo_runtime.datasets import CAMERA_PRESETS, Sequence, open_sequence
+from vo_runtime.errors import CalibrationError, FrameError, VORuntimeError
+from vo_runtime.features import FeatureExtractor, OrbExtractor, to_gray_u8
+from vo_runtime.odometry import SKIPPED, VisualOdometry, VOConfig, VOResult
+from vo_runtime.outputs import OutputKind, atomic_directory, check_replaceable
+from vo_runtime.sequence import read_frame
 from vo_runtime.trajectory import write_trajectory
+
+RUN_FILES = ("trajectory_tum.txt", "trajectory_kitti.txt", "frames.json", "summary.json", "trajectory.png")
+# What --force may replace: a directory this command wrote (its frames.json and summary.json) and nothing else.
+VO_RUN = OutputKind("a VO run written by the vo command",
+                    lambda path: (path / "frames.json").is_file() and (path / "summary.json").is_file(),
+                    lambda name: name in RUN_FILES)
+MAX_ORB_KEYPOINTS = 100_000
 
 DESCRIPTION = ("Run the monocular VO on a sequence (KITTI odometry or TUM RGB-D layout, or a folder of "
                "images) with an exported artefact or OpenCV ORB features; write the trajectory and, given "
@@ -37,7 +44,9 @@ examples:
 (rgb/, groundtruth.txt; camera preset tum-fr2 when the name says fr2) or any folder of images plus --calib.
 --gt auto uses the sequence's own poses.txt / groundtruth.txt. -o DIR writes trajectory_tum.txt,
 trajectory_kitti.txt, frames.json (state and counts per frame), summary.json and, with ground truth,
-trajectory.png. --lowlight GAMMA,SIGMA[,GAIN] darkens every frame (I' = 255 GAIN (I/255)^GAMMA, GAIN default 1) and
+trajectory.png; an existing DIR is replaced only with --force and only if it is an earlier vo run.
+A frame that cannot be read, or whose size differs from the calibration's (or the first frame's), is
+skipped: its pose is held, frames.json says why, and the summary counts it. --lowlight GAMMA,SIGMA[,GAIN] darkens every frame (I' = 255 GAIN (I/255)^GAMMA, GAIN default 1) and
 adds Gaussian noise of SIGMA grey levels (seeded per frame), to test the same sequence in low light. Exit codes: 0 done,
 2 bad input.
 """
@@ -53,7 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--calib", help=f"KITTI calib.txt, JSON intrinsics, or a preset ({', '.join(CAMERA_PRESETS)})")
     parser.add_argument("--camera", type=int, default=0, help="KITTI camera index: image_N/ and PN (default 0)")
     parser.add_argument("--gt", help="ground truth (KITTI poses.txt or TUM groundtruth.txt), or auto")
-    parser.add_argument("-o", "--output", type=Path, help="output directory (replaced as a whole)")
+    parser.add_argument("-o", "--output", type=Path, help="output directory (written as a whole)")
+    parser.add_argument("--force", action="store_true", help="replace an earlier vo run in the output directory")
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads (default 1)")
     parser.add_argument("--max-keypoints", type=int, default=2000, help="ORB features per frame (default 2000)")
     parser.add_argument("--max-frames", type=int, help="stop after this many frames")
@@ -74,14 +84,28 @@ def _parse_lowlight(text: str | None) -> tuple[float, float, float] | None:
         return None
     try:
         values = [float(v) for v in text.split(",")]
-        if len(values) not in (2, 3):
+        if len(values) not in (2, 3) or not all(math.isfinite(v) for v in values):
             raise ValueError
     except ValueError:
-        raise VORuntimeError(f"--lowlight takes GAMMA,SIGMA[,GAIN] (e.g. 2,3,0.3), got {text!r}") from None
+        raise VORuntimeError(f"--lowlight takes GAMMA,SIGMA[,GAIN] as finite numbers (e.g. 2,3,0.3), got {text!r}") from None
     gamma, sigma, gain = values if len(values) == 3 else (*values, 1.0)
     if gamma <= 0 or sigma < 0 or not 0 < gain <= 1:
         raise VORuntimeError("--lowlight needs GAMMA > 0, SIGMA >= 0 and 0 < GAIN <= 1")
     return gamma, sigma, gain
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Refuse out-of-range numbers before anything is read or written."""
+    if args.threads < 1:
+        raise VORuntimeError(f"--threads must be at least 1, got {args.threads}")
+    least = VOConfig().min_features  # fewer features per frame can never be tracked
+    if not least <= args.max_keypoints <= MAX_ORB_KEYPOINTS:
+        raise VORuntimeError(f"--max-keypoints must be between {least} (the VO needs {least} features a frame) "
+                             f"and {MAX_ORB_KEYPOINTS}, got {args.max_keypoints}")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise VORuntimeError(f"--max-frames must be at least 1, got {args.max_frames}")
+    if args.camera < 0:
+        raise VORuntimeError(f"--camera must be >= 0, got {args.camera}")
 
 
 def _progress(items: Iterator, total: int, enabled: bool) -> Iterator:
@@ -89,38 +113,61 @@ def _progress(items: Iterator, total: int, enabled: bool) -> Iterator:
         return items
     from tqdm import tqdm
 
-    return tqdm(items, total=total, desc="vo", unit="frame", file=sys.stderr)
+    # disable=None: no bar when stderr is not a terminal, so logs and errors stay line by line
+    return tqdm(items, total=total, desc="vo", unit="frame", file=sys.stderr, disable=None)
+
+
+def _load_groundtruth(args: argparse.Namespace, sequence: Sequence) -> Any:
+    """The ground-truth trajectory asked for, read before the run so a bad file fails at once; None if none."""
+    if args.gt is None:
+        return None
+    path = sequence.groundtruth if args.gt == "auto" else Path(args.gt)
+    if path is None:
+        raise VORuntimeError(f"--gt auto: {args.images} has no poses.txt or groundtruth.txt")
+    from vo_runtime.evaluate import load_groundtruth
+
+    return load_groundtruth(path, "tum" if sequence.layout == "tum" else "kitti", sequence.timestamps)
+
+
+def _track_file(vo: VisualOdometry, path: Path, timestamp: float, lowlight: tuple | None, index: int) -> None:
+    """Track one frame file; an unreadable frame or one of another size is skipped and flagged, never fatal."""
+    try:
+        image = read_frame(path)
+        if lowlight is not None:
+            image = darken(to_gray_u8(image), *lowlight, seed=index)
+        vo.track(image, timestamp)
+    except (FrameError, CalibrationError) as exc:
+        vo.skip(f"{path.name}: {exc}", timestamp)
 
 
 def run(args: argparse.Namespace) -> int:
+    _check_options(args)
     lowlight = _parse_lowlight(args.lowlight)
+    if args.output is not None:
+        check_replaceable(args.output, VO_RUN, args.force)
     if args.features == "artefact" and args.artefact is None:
         args.artefact = default_artefact()
-    if args.output is not None and args.output.exists() and not args.output.is_dir():
-        raise VORuntimeError(f"--output {args.output} exists and is not a directory")
     sequence = open_sequence(args.images, args.calib, args.camera)
-    groundtruth = sequence.groundtruth if args.gt == "auto" else (Path(args.gt) if args.gt else None)
-    if args.gt == "auto" and groundtruth is None:
-        raise VORuntimeError(f"--gt auto: {args.images} has no poses.txt or groundtruth.txt")
-    if groundtruth is not None and not groundtruth.is_file():
-        raise VORuntimeError(f"ground truth not found: {groundtruth}")
+    groundtruth = _load_groundtruth(args, sequence)
     frames = sequence.frames[: args.max_frames]
     extractor = (OrbExtractor(args.max_keypoints) if args.features == "orb"
                  else FeatureExtractor(args.artefact, threads=args.threads))
     vo = VisualOdometry(extractor, sequence.camera)
-    images = read_frames(frames)
-    for index, image in enumerate(_progress(images, len(frames), not args.no_progress)):
-        if lowlight is not None:
-            image = darken(image, *lowlight, seed=index)
-        vo.track(image, sequence.timestamps[index])
+    for index, path in enumerate(_progress(iter(frames), len(frames), not args.no_progress)):
+        _track_file(vo, path, sequence.timestamps[index], lowlight, index)
+    used = [r for r in vo.results if r.status != SKIPPED]
+    skipped = [r for r in vo.results if r.status == SKIPPED]
+    if not used:
+        raise VORuntimeError(f"none of the {len(frames)} frames could be used ({skipped[0].problem})")
     states = [r.status for r in vo.results]
     summary: dict[str, Any] = {
         "features": args.features if args.features == "orb" else str(args.artefact),
         "sequence": str(args.images), "layout": sequence.layout, "lowlight": args.lowlight,
         "frames": len(vo.results), "states": {s: states.count(s) for s in dict.fromkeys(states)},
-        "median_extract_ms": round(float(np.median([r.extract_ms for r in vo.results])), 2),
-        "median_track_ms": round(float(np.median([r.track_ms for r in vo.results])), 2),
-        "median_inliers": float(np.median([r.num_inliers for r in vo.results])),
+        "skipped_frames": len(skipped),
+        "median_extract_ms": round(float(np.median([r.extract_ms for r in used])), 2),
+        "median_track_ms": round(float(np.median([r.track_ms for r in used])), 2),
+        "median_inliers": float(np.median([r.num_inliers for r in used])),
     }
     report = None
     if groundtruth is not None:
@@ -134,50 +181,46 @@ def run(args: argparse.Namespace) -> int:
             summary["ate_rmse_m"] = None
             summary["evaluation_error"] = str(exc)
     if args.output is not None:
-        _write_outputs(args.output, vo.results, summary, report)
+        _write_outputs(args.output, vo.results, frames, summary, report)
     print(json.dumps(summary) if args.json else " ".join(f"{k}={v}" for k, v in summary.items()))
+    if skipped:
+        print(f"warning: skipped {len(skipped)} of {len(frames)} frames (pose held), first: {skipped[0].problem}",
+              file=sys.stderr)
     return 0
 
 
-def _write_outputs(output: Path, results: list, summary: dict[str, Any], report: dict[str, Any] | None) -> None:
+def _frame_record(result: VOResult, path: Path) -> dict[str, Any]:
+    record = {"index": result.index, "file": path.name, "timestamp": result.timestamp, "state": result.status,
+              "features": result.num_features, "matches": result.num_matches, "inliers": result.num_inliers,
+              "landmarks": result.num_landmarks, "keyframe": result.keyframe,
+              "extract_ms": round(result.extract_ms, 3), "track_ms": round(result.track_ms, 3)}
+    if result.problem is not None:
+        record["problem"] = result.problem
+    return record
+
+
+def _write_outputs(output: Path, results: list[VOResult], frames: list[Path], summary: dict[str, Any],
+                   report: dict[str, Any] | None) -> None:
     """Write everything into a staging directory beside ``output``, then swap it in."""
-    output.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-", dir=output.parent))
-    try:
+    with atomic_directory(output) as staging:
         write_trajectory(staging / "trajectory_tum.txt", results, "tum")
         write_trajectory(staging / "trajectory_kitti.txt", results, "kitti")
-        frames = [{"index": r.index, "timestamp": r.timestamp, "state": r.status, "features": r.num_features,
-                   "matches": r.num_matches, "inliers": r.num_inliers, "landmarks": r.num_landmarks, "keyframe": r.keyframe,
-                   "extract_ms": round(r.extract_ms, 3), "track_ms": round(r.track_ms, 3)} for r in results]
-        (staging / "frames.json").write_text(json.dumps(frames, indent=1))
+        records = [_frame_record(result, path) for result, path in zip(results, frames)]
+        (staging / "frames.json").write_text(json.dumps(records, indent=1))
         (staging / "summary.json").write_text(json.dumps(summary, indent=2))
         if report is not None:
             from vo_runtime.evaluate import plot_trajectory
 
             plot_trajectory(staging / "trajectory.png", report, f"{summary['sequence']} ({summary['features']})")
-        os.chmod(staging, 0o755)
-        if output.exists():
-            shutil.rmtree(output)
-        os.rename(staging, output)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging, ignore_errors=True)
 
 
 def build_parser(prog: str = "python -m vo_runtime") -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=prog, description=DESCRIPTION, epilog=EPILOG.format(prog=prog),
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = OneLineArgumentParser(prog=prog, description=DESCRIPTION, epilog=EPILOG.format(prog=prog),
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(parser)
+    parser.set_defaults(func=run)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return run(args)
-    except VORuntimeError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("error: interrupted", file=sys.stderr)
-        return 130
+    return run_guarded(build_parser(), argv, (VORuntimeError,))

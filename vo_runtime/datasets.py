@@ -56,6 +56,11 @@ def open_sequence(path: str | Path, calib: str | Path | None = None, camera: int
     if root.name == "rgb" and (root.parent / "groundtruth.txt").is_file():
         root = root.parent
     kitti_images = root / f"image_{camera}"
+    if (root / "calib.txt").is_file() and not kitti_images.is_dir():
+        found = sorted(p.name for p in root.glob("image_*") if p.is_dir())
+        if found:  # a KITTI folder, but not for this camera: say so rather than "no calib.txt"
+            raise CalibrationError(f"{root} has calib.txt but no {kitti_images.name}/ for --camera {camera} "
+                                   f"(found {', '.join(found)}/)")
     if (root / "calib.txt").is_file() and kitti_images.is_dir():
         frames = list_frames(kitti_images)
         times = root / "times.txt"

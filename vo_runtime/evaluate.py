@@ -4,25 +4,37 @@ evo and matplotlib are imported only here, so the runtime itself needs neither.
 """
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 from typing import Sequence as Seq
 
 import numpy as np
 
-from vo_runtime.errors import VORuntimeError
-from vo_runtime.odometry import INITIALISING, VOResult
+from vo_runtime.errors import VORuntimeError, first_line
+from vo_runtime.odometry import INITIALISING, SKIPPED, VOResult
 
 
-def _ground_truth(path: Path, layout: str, timestamps: Seq[float]) -> Any:
+def load_groundtruth(path: str | Path, layout: str, timestamps: Seq[float]) -> Any:
+    """Ground truth as an evo trajectory: KITTI ``poses.txt`` (12 numbers a line, one line per frame, stamped
+    with ``timestamps``) or TUM ``groundtruth.txt``. Raises `VORuntimeError` for anything else, before a run."""
+    from evo import EvoException
     from evo.core.trajectory import PoseTrajectory3D
     from evo.tools import file_interface
 
+    path = Path(path)
+    if not path.is_file():
+        raise VORuntimeError(f"ground truth not found: {path}")
     if layout == "tum":
-        return file_interface.read_tum_trajectory_file(str(path))
-    rows = np.loadtxt(path, ndmin=2)
-    if rows.shape[1] != 12:
-        raise VORuntimeError(f"{path}: expected 12 values a line (KITTI 3x4 poses), got {rows.shape[1]}")
+        try:
+            trajectory = file_interface.read_tum_trajectory_file(str(path))
+        except (EvoException, OSError, ValueError, UnicodeDecodeError) as exc:
+            raise VORuntimeError(f"{path} is not a TUM trajectory (timestamp tx ty tz qx qy qz qw a line): "
+                                 f"{first_line(exc)}") from None
+        if trajectory.num_poses < 2:
+            raise VORuntimeError(f"{path} holds {trajectory.num_poses} poses: nothing to evaluate against")
+        return trajectory
+    rows = _kitti_rows(path)
     if len(rows) < len(timestamps):
         raise VORuntimeError(f"{path} has {len(rows)} poses for {len(timestamps)} frames")
     poses = np.tile(np.eye(4), (len(timestamps), 1, 1))
@@ -30,33 +42,51 @@ def _ground_truth(path: Path, layout: str, timestamps: Seq[float]) -> Any:
     return PoseTrajectory3D(poses_se3=list(poses), timestamps=np.asarray(timestamps, float))
 
 
-def evaluate(results: Seq[VOResult], groundtruth: str | Path, layout: str, timestamps: Seq[float]) -> dict[str, Any]:
+def _kitti_rows(path: Path) -> np.ndarray:
+    """The [N, 12] finite numbers of a KITTI poses file; `VORuntimeError` naming what is wrong."""
+    try:
+        with warnings.catch_warnings():  # numpy warns about an empty file before returning nothing
+            warnings.simplefilter("ignore")
+            rows = np.loadtxt(path, ndmin=2, dtype=np.float64)
+    except (OSError, ValueError, UnicodeDecodeError) as exc:
+        raise VORuntimeError(f"{path} is not a KITTI poses file (12 numbers a line): {first_line(exc)}") from None
+    if rows.size == 0:
+        raise VORuntimeError(f"{path} holds no poses")
+    if rows.shape[1] != 12:
+        raise VORuntimeError(f"{path}: expected 12 values a line (KITTI 3x4 poses), got {rows.shape[1]}")
+    if not np.all(np.isfinite(rows)):
+        raise VORuntimeError(f"{path} holds non-finite values")
+    return rows
+
+
+def evaluate(results: Seq[VOResult], groundtruth: Any, layout: str, timestamps: Seq[float]) -> dict[str, Any]:
     """ATE RMSE and RPE RMSE (1-frame translation, metres) of the frames past initialisation.
 
-    The estimate is aligned to the ground truth by Sim(3) (Umeyama with scale), as monocular VO needs.
-    ``layout`` is "kitti" (poses.txt, one per frame, with ``timestamps``) or "tum" (groundtruth.txt,
-    associated by nearest timestamp within 10 ms).
+    ``groundtruth`` is a file (read by `load_groundtruth`) or the trajectory it returned. The estimate is
+    aligned to the ground truth by Sim(3) (Umeyama with scale), as monocular VO needs. ``layout`` is "kitti"
+    (poses.txt, one per frame, with ``timestamps``) or "tum" (groundtruth.txt, associated by nearest
+    timestamp within 10 ms).
     """
+    from evo import EvoException
     from evo.core import metrics, sync
-    from evo.core.geometry import GeometryException
     from evo.core.trajectory import PoseTrajectory3D
 
-    used = [r for r in results if r.status != INITIALISING]
+    used = [r for r in results if r.status not in (INITIALISING, SKIPPED)]
     if len(used) < 3:
         raise VORuntimeError(f"only {len(used)} frames past initialisation: nothing to evaluate")
     stamps = np.array([timestamps[r.index] for r in used], float)
     est = PoseTrajectory3D(poses_se3=[r.pose for r in used], timestamps=stamps)
-    ref = _ground_truth(Path(groundtruth), layout, timestamps)
-    ref, est = sync.associate_trajectories(ref, est, max_diff=0.01)
+    ref = load_groundtruth(groundtruth, layout, timestamps) if isinstance(groundtruth, (str, Path)) else groundtruth
     try:
+        ref, est = sync.associate_trajectories(ref, est, max_diff=0.01)
         _, _, scale = est.align(ref, correct_scale=True)
-    except GeometryException:
-        raise VORuntimeError("the estimated trajectory is degenerate (no motion tracked): no Sim(3) alignment") \
-            from None
-    ate = metrics.APE(metrics.PoseRelation.translation_part)
-    ate.process_data((ref, est))
-    rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta=1, delta_unit=metrics.Unit.frames, all_pairs=False)
-    rpe.process_data((ref, est))
+        ate = metrics.APE(metrics.PoseRelation.translation_part)
+        ate.process_data((ref, est))
+        rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta=1, delta_unit=metrics.Unit.frames,
+                          all_pairs=False)
+        rpe.process_data((ref, est))
+    except EvoException as exc:  # no common timestamps, or no motion tracked (degenerate alignment)
+        raise VORuntimeError(f"cannot evaluate against the ground truth: {first_line(exc)}") from None
     return {
         "frames_evaluated": int(est.num_poses),
         "path_length_m": round(float(ref.path_length), 3),

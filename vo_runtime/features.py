@@ -8,7 +8,9 @@ import cv2
 import numpy as np
 
 from vo_runtime.artefact import verify_artefact
-from vo_runtime.errors import ArtefactError, VORuntimeError
+from vo_runtime.errors import ArtefactError, FrameError, VORuntimeError, first_line
+
+MIN_FRAME_SIDE = 16  # smaller frames carry no trackable structure (and break the 8-px network cell)
 
 
 @dataclass
@@ -26,16 +28,46 @@ class Features:
         return int(self.keypoints.shape[0])
 
 
+def check_frame(image: object) -> np.ndarray:
+    """Return ``image`` if it is a usable frame, else raise `FrameError` saying why.
+
+    Usable: an HxW or HxWxC (C = 1, 3 or 4) array, each side at least `MIN_FRAME_SIDE`, of uint8, uint16, another
+    integer type holding 0..255, or float (0..1 or 0..255) without NaN or inf.
+    """
+    if image is None:
+        raise FrameError("no image (None): the frame could not be read")
+    if not isinstance(image, np.ndarray):
+        raise FrameError(f"expected an HxW or HxWx3 image array, got {type(image).__name__}")
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (1, 3, 4)):
+        raise FrameError(f"expected an HxW or HxWx3 image array, got shape {image.shape}")
+    if min(image.shape[:2]) < MIN_FRAME_SIDE:
+        raise FrameError(f"a {image.shape[1]}x{image.shape[0]} frame is too small (each side >= {MIN_FRAME_SIDE} px)")
+    if image.dtype == np.bool_ or not (np.issubdtype(image.dtype, np.integer) or np.issubdtype(image.dtype, np.floating)):
+        raise FrameError(f"unsupported image dtype {image.dtype} (uint8, uint16 or float)")
+    if np.issubdtype(image.dtype, np.floating) and not np.all(np.isfinite(image)):
+        raise FrameError("the frame holds NaN or infinite values")
+    if image.dtype not in (np.uint8, np.uint16) and np.issubdtype(image.dtype, np.integer) and (
+            image.min() < 0 or image.max() > 255):
+        raise FrameError(f"{image.dtype} frame values span {image.min()}..{image.max()}; expected 0..255 (or uint16)")
+    return image
+
+
 def to_gray_u8(image: np.ndarray) -> np.ndarray:
-    """Accept HxW gray or HxWx3 BGR (uint8, or float in [0, 1]); return HxW uint8."""
-    if image is None or not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or image.size == 0:
-        raise VORuntimeError("expected an HxW or HxWx3 image array")
-    if image.dtype != np.uint8:
-        image = np.clip(image.astype(np.float32) * (255.0 if image.max() <= 1.0 else 1.0), 0, 255).astype(np.uint8)
+    """Accept HxW gray or HxWx3 BGR (HxWx4 BGRA) frames as `check_frame` describes; return HxW uint8.
+
+    16-bit frames are scaled by 1/256 with rounding, as OpenCV's ``IMREAD_GRAYSCALE`` reads a 16-bit PNG
+    (so `toolkit label` and the VO see the same pixels); float frames in [0, 1] are scaled by 255.
+    """
+    image = check_frame(image)
+    if image.dtype == np.uint16:
+        image = np.rint(image.astype(np.float32) / 256.0).clip(0, 255).astype(np.uint8)
+    elif image.dtype != np.uint8:
+        scale = 255.0 if np.issubdtype(image.dtype, np.floating) and image.max() <= 1.0 else 1.0
+        image = np.clip(image.astype(np.float32) * scale, 0, 255).astype(np.uint8)
     if image.ndim == 3:
         if image.shape[2] == 1:
             return image[:, :, 0]
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
     return image
 
 
@@ -52,13 +84,18 @@ class FeatureExtractor:
     def __init__(self, artefact: str | Path, threads: int = 1, resize_policy: str | None = None) -> None:
         import onnxruntime as ort
 
+        if not isinstance(threads, (int, np.integer)) or threads < 0:
+            raise VORuntimeError(f"threads must be an integer >= 0 (0: onnxruntime's choice), got {threads!r}")
         self.directory = Path(artefact)
         self.manifest = verify_artefact(self.directory)
         if self.manifest.get("mode") != "keypoints":
             raise ArtefactError(f"{self.directory} is a dense artefact; FeatureExtractor needs keypoint mode")
         shape = self.manifest["input"]["shape"]
         self.height, self.width = int(shape[2]), int(shape[3])
-        self.scale = float(self.manifest["input"]["normalisation"]["scale"])
+        try:
+            self.scale = float(self.manifest["input"]["normalisation"]["scale"])
+        except (KeyError, TypeError, ValueError):
+            raise ArtefactError(f"{self.directory}: the manifest has no input.normalisation.scale") from None
         self.resize_policy = resize_policy or self.manifest["input"].get("resize_policy", "resize")
         if self.resize_policy not in ("resize", "reject"):
             raise ArtefactError(f"unknown resize policy {self.resize_policy!r}")
@@ -70,7 +107,7 @@ class FeatureExtractor:
                 str(self.directory / self.manifest["onnx"]["file"]), options, providers=["CPUExecutionProvider"]
             )
         except Exception as exc:  # onnxruntime raises several unrelated types for a bad model
-            raise ArtefactError(f"onnxruntime cannot load {self.directory}: {str(exc).splitlines()[0]}") from None
+            raise ArtefactError(f"onnxruntime cannot load {self.directory}: {first_line(exc)}") from None
         self.input_name = self.session.get_inputs()[0].name
 
     def __call__(self, image: np.ndarray) -> Features:
@@ -79,7 +116,7 @@ class FeatureExtractor:
         height, width = gray.shape
         if (height, width) != (self.height, self.width):
             if self.resize_policy == "reject":
-                raise VORuntimeError(
+                raise FrameError(
                     f"frame is {height}x{width} but the artefact takes {self.height}x{self.width} (resize policy: reject)"
                 )
             gray = cv2.resize(gray, (self.width, self.height), interpolation=cv2.INTER_AREA)

@@ -16,7 +16,12 @@ its 3D landmark. Per frame:
   runs the local bundle adjustment, which refines the window's poses and points and culls points that stay
   far off (`bundle.py`);
 - if PnP fails the frame is ``lost``: the pose is held, the tracks restart from this frame and the next
-  initialisation is scaled by the speed measured so far (status ``reinitialised``).
+  initialisation is scaled by the speed measured so far (status ``reinitialised``);
+- a frame that cannot be used (None, empty, of an unusable shape or dtype, NaN/inf: `check_frame`) is
+  ``skipped``: the pose is held, the result says why (``problem``), and tracking goes on with the next frame
+  as if the bad one had not arrived. A frame whose size contradicts the calibration (or, for a calibration
+  without a size, the first frame's size) raises `CalibrationError` and changes nothing: the intrinsics
+  would be wrong for it, and the caller decides (the CLI records it as skipped).
 
 Poses are camera-to-world 4x4 matrices; the world is the first frame's camera (x right, y down, z forward),
 in units of the first baseline (monocular VO cannot observe metric scale).
@@ -33,13 +38,14 @@ import numpy as np
 
 from vo_runtime.bundle import SlidingWindow
 from vo_runtime.camera import Camera
-from vo_runtime.errors import VORuntimeError
-from vo_runtime.features import FeatureExtractor, Features
+from vo_runtime.errors import CalibrationError, FrameError, VORuntimeError
+from vo_runtime.features import FeatureExtractor, Features, check_frame
 from vo_runtime.geometry import invert_pose, make_pose, pose_from_rvec, rvec_from_pose, triangulate
 from vo_runtime.matching import match_mutual_nn
 from vo_runtime.twoview import relative_pose_hypotheses
 
 INITIALISING, TRACKING, REINITIALISED, LOST = "initialising", "tracking", "reinitialised", "lost"
+SKIPPED = "skipped"  # the frame could not be used (see VOResult.problem); the pose is held
 
 
 @dataclass
@@ -89,6 +95,7 @@ class VOResult:
     extract_ms: float
     track_ms: float
     keyframe: bool = False  # ran the local bundle adjustment
+    problem: str | None = None  # why a skipped frame could not be used
 
 
 class _Tracks:
@@ -153,16 +160,31 @@ class MonoVO:
         self.init_model: str | None = None     # model of the last (re)initialisation: essential or homography
         self._keyframe = -1                    # index of the last keyframe
         self._keyframe_ids = np.zeros(0, np.int64)  # track ids of the landmarks that keyframe saw
+        self._frame_size: tuple[int, int] | None = None  # (height, width) of the frames, fixed by the first one
 
     # ------------------------------------------------------------------ public
-    def process(self, image: np.ndarray, timestamp: float | None = None) -> VOResult:
-        """Track one frame (HxW gray or HxWx3 BGR) and return its pose and statistics."""
-        if not isinstance(image, np.ndarray) or image.ndim not in (2, 3):
-            raise VORuntimeError("expected an HxW or HxWx3 image array")
-        self.camera.check_frame(*image.shape[:2])
+    def process(self, image: np.ndarray | None, timestamp: float | None = None) -> VOResult:
+        """Track one frame (HxW gray or HxWx3 BGR) and return its pose and statistics.
+
+        An unusable frame (see `check_frame`; None included) is skipped and flagged, never raised. Raises
+        `CalibrationError` for a frame of another size than the calibration's (or the first frame's), and
+        `FrameError` for an argument that is not an image array at all (a programming error).
+        """
+        if image is not None and not isinstance(image, np.ndarray):
+            raise FrameError(f"expected an HxW or HxWx3 image array, got {type(image).__name__}")
+        try:
+            check_frame(image)
+        except FrameError as exc:
+            return self.skip(str(exc), timestamp)
+        self._check_size(*image.shape[:2])
         index = len(self.results)
         start = time.perf_counter()
-        features = self.extractor(image)
+        try:
+            features = self.extractor(image)
+        except FrameError as exc:  # e.g. an extractor whose resize policy rejects this size
+            return self.skip(str(exc), timestamp)
+        if self._frame_size is None:
+            self._frame_size = image.shape[:2]
         extracted = time.perf_counter()
         tracks = _Tracks(index, self.camera.normalise(features.keypoints), np.asarray(features.keypoints, np.float64))
         status, matches, inliers = self._track(index, features, tracks)
@@ -174,6 +196,24 @@ class MonoVO:
         )
         self.results.append(result)
         return result
+
+    def skip(self, problem: str, timestamp: float | None = None) -> VOResult:
+        """Record a frame that could not be used (status ``skipped``, pose held) and say why; the map and the
+        tracks are untouched, so the next good frame is matched to the last good one."""
+        index = len(self.results)
+        self._poses_cw.append(self._poses_cw[-1].copy() if self._poses_cw else np.eye(4))
+        result = VOResult(index=index, timestamp=timestamp, pose=invert_pose(self._poses_cw[index]), status=SKIPPED,
+                          num_features=0, num_matches=0, num_inliers=0, num_landmarks=0, extract_ms=0.0,
+                          track_ms=0.0, problem=problem)
+        self.results.append(result)
+        return result
+
+    def _check_size(self, height: int, width: int) -> None:
+        """Intrinsics fit one frame size: the calibration's, or when it names none, the first frame's."""
+        self.camera.check_frame(height, width)
+        if self._frame_size is not None and (height, width) != self._frame_size:
+            raise CalibrationError(f"frame is {width}x{height} but this sequence's frames are "
+                                   f"{self._frame_size[1]}x{self._frame_size[0]} (the intrinsics fit one size)")
 
     # ------------------------------------------------------------------ tracking
     def _track(self, index: int, features: Features, tracks: _Tracks) -> tuple[str, int, int]:

@@ -7,7 +7,7 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from vo_runtime.errors import VORuntimeError
+from vo_runtime.errors import FrameError, VORuntimeError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff")
 
@@ -40,12 +40,22 @@ def frame_timestamps(frames: list[Path], times_file: str | Path | None = None) -
         return [float(i) for i in range(len(frames))]
 
 
+def read_frame(path: str | Path) -> np.ndarray:
+    """One frame as OpenCV loads it (gray stays gray, colour is BGR, 16-bit stays 16-bit); `FrameError` when
+    the file cannot be read or decoded."""
+    try:
+        data = np.fromfile(str(path), dtype=np.uint8)
+    except OSError as exc:
+        raise FrameError(f"cannot read image {path} ({exc.strerror or type(exc).__name__})") from None
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if image is None:
+        raise FrameError(f"cannot decode image {path}")
+    if image.ndim == 3 and image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    return image
+
+
 def read_frames(frames: list[Path]) -> Iterator[np.ndarray]:
-    """Yield each frame as loaded by OpenCV (gray stays gray, colour is BGR)."""
+    """Yield each frame as `read_frame` loads it; raises `FrameError` at the first unreadable one."""
     for path in frames:
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if image is None:
-            raise VORuntimeError(f"cannot decode image {path}")
-        if image.ndim == 3 and image.shape[2] == 4:
-            image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
-        yield image
+        yield read_frame(path)
