@@ -49,8 +49,8 @@ def run_guarded(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
     silence_native_logs()
     try:
         return int(args.func(args) or 0)
-    except user_errors as exc:
-        _report(first_line(exc))
+    except user_errors as exc:  # our own messages: one line already, never shortened
+        _report(first_line(exc, limit=None))
     except MemoryError:
         _report("out of memory: use a smaller input size, batch or image count")
     except OSError as exc:  # a file we could not read or write (full disk, permissions)

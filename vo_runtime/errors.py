@@ -20,11 +20,12 @@ class FrameError(VORuntimeError):
     """A frame cannot be used: undecodable, empty, of an unusable shape or dtype, or holding NaN/inf."""
 
 
-def first_line(exc: BaseException, limit: int = MESSAGE_LIMIT) -> str:
-    """The first non-blank line of ``str(exc)``, shortened to ``limit``; the class name when the text is empty.
+def first_line(exc: BaseException, limit: int | None = MESSAGE_LIMIT) -> str:
+    """The first non-blank line of ``str(exc)``, shortened to ``limit`` (None: never); the class name when the
+    text is empty.
 
     Foreign exceptions (torch, onnxruntime, OpenCV) may carry empty or many-line messages; ours are one line.
     """
     lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
     text = lines[0] if lines else type(exc).__name__
-    return text if len(text) <= limit else text[: limit - 3] + "..."
+    return text if limit is None or len(text) <= limit else text[: limit - 3] + "..."

@@ -55,12 +55,12 @@ def check_frame(image: object) -> np.ndarray:
 def to_gray_u8(image: np.ndarray) -> np.ndarray:
     """Accept HxW gray or HxWx3 BGR (HxWx4 BGRA) frames as `check_frame` describes; return HxW uint8.
 
-    16-bit frames are scaled by 1/256 with rounding, as OpenCV's ``IMREAD_GRAYSCALE`` reads a 16-bit PNG
+    16-bit frames keep their high byte (x >> 8), as OpenCV's ``IMREAD_GRAYSCALE`` reads a 16-bit PNG
     (so `toolkit label` and the VO see the same pixels); float frames in [0, 1] are scaled by 255.
     """
     image = check_frame(image)
     if image.dtype == np.uint16:
-        image = np.rint(image.astype(np.float32) / 256.0).clip(0, 255).astype(np.uint8)
+        image = (image >> 8).astype(np.uint8)
     elif image.dtype != np.uint8:
         scale = 255.0 if np.issubdtype(image.dtype, np.floating) and image.max() <= 1.0 else 1.0
         image = np.clip(image.astype(np.float32) * scale, 0, 255).astype(np.uint8)

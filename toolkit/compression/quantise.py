@@ -132,6 +132,8 @@ def quantise_artefact(options: QuantiseOptions, log=print) -> Path:
         raise ToolkitError(f"--mode must be one of {', '.join(MODES)}, got {options.mode!r}")
     source = Path(options.artefact)
     manifest = verify_artefact(source)  # ArtefactError (exit 2) when missing or the checksum fails
+    if not isinstance(manifest.get("target"), str):
+        raise ToolkitError(f"{source}/manifest.json names no target profile: re-export the artefact")
     profile = load_profile(manifest["target"])
     if options.mode == "int8" and profile.name == "tx2":
         raise ToolkitError("int8 is refused for tx2: its Pascal GPU has no fast INT8 path (INT8 engines ran slower "

@@ -17,7 +17,7 @@ from models.featurenet import FeatureNet, FeatureNetConfig
 from models.superpoint import SuperPointNet
 from toolkit.errors import ToolkitError
 from vo_runtime.artefact import MODEL_NAME, verify_artefact
-from vo_runtime.errors import VORuntimeError
+from vo_runtime.errors import VORuntimeError, first_line
 
 ARCHITECTURES = ("featurenet", "featurenet-relu", "superpoint")
 
@@ -90,7 +90,10 @@ def _from_artefact(directory: Path, requested_size: tuple[int, int] | None) -> M
     model = manifest.get("model", {})
     # The artefact holds the graph; a same-architecture network (random weights) stands in for the
     # PyTorch-side count and the eager reference timing, which do not depend on weight values.
-    net = build_model(model.get("arch", ""), model.get("config", {})).eval()
+    try:
+        net = build_model(model.get("arch", ""), model.get("config") or {}).eval()
+    except (TypeError, ValueError) as exc:  # a manifest whose model config no network accepts
+        raise ToolkitError(f"artefact {directory}: its manifest's model config is unusable ({first_line(exc)})") from None
     post = manifest.get("postprocess", {})
     return ModelSource(
         name=f"{directory.name} ({model.get('arch', '?')})",
