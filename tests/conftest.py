@@ -14,3 +14,23 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.fail(f"shared data not found at {SHARED_DATA}: tests expect ../shared/data beside the repo")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def bad_input_assets(tmp_path_factory):
+    """For the bad-input matrix (tests/test_bad_inputs*.py): a random ReLU FeatureNet checkpoint and its x86-cpu
+    artefact at 64x64, built once; cases only read them."""
+    import torch
+
+    from bad_inputs_support import Assets
+    from models.checkpoint import save_checkpoint
+    from models.featurenet import FeatureNet, FeatureNetConfig
+    from toolkit.cli import main
+
+    root = tmp_path_factory.mktemp("bad-input-assets")
+    torch.manual_seed(0)
+    checkpoint = save_checkpoint(FeatureNet(FeatureNetConfig(activation="relu")), root / "relu.safetensors")
+    artefact = root / "artefact"
+    assert main(["export", "--target", "x86-cpu", "--checkpoint", str(checkpoint), "--input-size", "64x64",
+                 "-o", str(artefact)]) == 0
+    return Assets(root, checkpoint, artefact)
