@@ -69,3 +69,29 @@ def triangulate(
         err[~(cam[:, 2] > 0)] = np.inf
         error = np.maximum(error, np.where(np.isnan(err), np.inf, err))
     return world, error
+
+
+def reprojection_errors(world: np.ndarray, image: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """Normalised-plane reprojection errors [N] of world points [N, 3] against observations [N, 2]."""
+    cam = world @ cv2.Rodrigues(rvec)[0].T + tvec.reshape(3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.linalg.norm(cam[:, :2] / cam[:, 2:] - image, axis=1)
+    return np.where(cam[:, 2] > 0, np.nan_to_num(err, nan=np.inf), np.inf)
+
+
+def camera_centre(pose_cw: np.ndarray) -> np.ndarray:
+    return -pose_cw[:3, :3].T @ pose_cw[:3, 3]
+
+
+def ray_angles(poses_a: np.ndarray, pose_b: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
+    """Angle (degrees) between the world-frame viewing rays of normalised points seen from two poses.
+
+    ``poses_a`` is one world-to-camera pose or one per point ([N, 4, 4]).
+    """
+    rays_a = np.concatenate([pts_a, np.ones((len(pts_a), 1))], axis=1)
+    rays_b = np.concatenate([pts_b, np.ones((len(pts_b), 1))], axis=1)
+    rot_a = np.asarray(poses_a)[..., :3, :3]
+    world_a = np.einsum("...ji,...j->...i", rot_a, rays_a) if rot_a.ndim == 3 else rays_a @ rot_a
+    world_b = rays_b @ pose_b[:3, :3]
+    cos = np.sum(world_a * world_b, axis=1) / (np.linalg.norm(world_a, axis=1) * np.linalg.norm(world_b, axis=1))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))

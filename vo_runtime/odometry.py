@@ -40,8 +40,10 @@ from vo_runtime.bundle import SlidingWindow
 from vo_runtime.camera import Camera
 from vo_runtime.errors import CalibrationError, FrameError, VORuntimeError
 from vo_runtime.features import FeatureExtractor, Features, check_frame
-from vo_runtime.geometry import invert_pose, make_pose, pose_from_rvec, rvec_from_pose, triangulate
+from vo_runtime.geometry import (camera_centre, invert_pose, make_pose, pose_from_rvec, ray_angles,
+                                 reprojection_errors, rvec_from_pose, triangulate)
 from vo_runtime.matching import match_mutual_nn
+from vo_runtime.tracks import Tracks
 from vo_runtime.twoview import relative_pose_hypotheses
 
 INITIALISING, TRACKING, REINITIALISED, LOST = "initialising", "tracking", "reinitialised", "lost"
@@ -98,40 +100,6 @@ class VOResult:
     problem: str | None = None  # why a skipped frame could not be used
 
 
-class _Tracks:
-    """Per-keypoint track state, row-aligned with one frame's keypoints."""
-
-    def __init__(self, frame_index: int, points: np.ndarray, pixels: np.ndarray) -> None:
-        n = len(points)
-        self.points = points                      # this frame, normalised image plane [N, 2]
-        self.pixels = pixels                      # this frame, pixels [N, 2]
-        self.first_points = points.copy()         # where each track began (normalised)
-        self.first_pixels = pixels.copy()
-        self.first_frame = np.full(n, frame_index)
-        self.landmarks = np.full((n, 3), np.nan)  # world points, NaN where none
-        self.angles = np.zeros(n)                 # ray angle when last triangulated (degrees)
-        self.ids = _track_ids(frame_index, np.arange(n))  # unique per track, for bundle adjustment
-
-    def extend(self, previous: "_Tracks", matches: np.ndarray) -> None:
-        """Carry matched tracks over from the previous frame (matches: prev row, this row)."""
-        i, j = matches[:, 0], matches[:, 1]
-        for name in ("first_points", "first_pixels", "first_frame", "landmarks", "angles", "ids"):
-            getattr(self, name)[j] = getattr(previous, name)[i]
-
-    def restart(self, rows: np.ndarray, frame_index: int) -> None:
-        """Make `rows` begin afresh at this frame, without landmarks."""
-        self.first_points[rows] = self.points[rows]
-        self.first_pixels[rows] = self.pixels[rows]
-        self.first_frame[rows] = frame_index
-        self.landmarks[rows] = np.nan
-        self.angles[rows] = 0.0
-        self.ids[rows] = _track_ids(frame_index, rows)
-
-    @property
-    def has_landmark(self) -> np.ndarray:
-        return ~np.isnan(self.landmarks[:, 0])
-
-
 class MonoVO:
     """Monocular VO over a stream of frames.
 
@@ -151,7 +119,7 @@ class MonoVO:
         """Forget the map and the trajectory; the next frame becomes the origin."""
         self.results: list[VOResult] = []
         self._poses_cw: list[np.ndarray] = []  # world-to-camera, one per processed frame
-        self._previous: tuple[Features, _Tracks] | None = None
+        self._previous: tuple[Features, Tracks] | None = None
         self._reference = 0                    # frame the next initialisation measures from
         self._initialised = False             # a scale has been fixed (first initialisation done)
         self._mapped = False                  # landmarks exist to track against (false again after a loss)
@@ -186,7 +154,7 @@ class MonoVO:
         if self._frame_size is None:
             self._frame_size = image.shape[:2]
         extracted = time.perf_counter()
-        tracks = _Tracks(index, self.camera.normalise(features.keypoints), np.asarray(features.keypoints, np.float64))
+        tracks = Tracks(index, self.camera.normalise(features.keypoints), np.asarray(features.keypoints, np.float64))
         status, matches, inliers = self._track(index, features, tracks)
         result = VOResult(
             index=index, timestamp=timestamp, pose=invert_pose(self._poses_cw[index]), status=status,
@@ -216,7 +184,7 @@ class MonoVO:
                                    f"{self._frame_size[1]}x{self._frame_size[0]} (the intrinsics fit one size)")
 
     # ------------------------------------------------------------------ tracking
-    def _track(self, index: int, features: Features, tracks: _Tracks) -> tuple[str, int, int]:
+    def _track(self, index: int, features: Features, tracks: Tracks) -> tuple[str, int, int]:
         """Set this frame's pose (held until something better is known); return (status, matches, inliers)."""
         cfg = self.config
         self._poses_cw.append(self._poses_cw[-1].copy() if self._poses_cw else np.eye(4))
@@ -256,7 +224,7 @@ class MonoVO:
         self._initialised = self._mapped = True
         return status, len(matches), count
 
-    def _track_pnp(self, index: int, tracks: _Tracks) -> int | None:
+    def _track_pnp(self, index: int, tracks: Tracks) -> int | None:
         """PnP against the tracked landmarks; on success set this frame's pose and return the inlier count."""
         cfg = self.config
         rows = np.flatnonzero(tracks.has_landmark)
@@ -277,24 +245,24 @@ class MonoVO:
             last = self._poses_cw[index - 1]
             before = self._poses_cw[index - 2] if index >= 2 else last
             rvec, tvec = rvec_from_pose(last @ invert_pose(before) @ last)
-            inl = np.flatnonzero(_reprojection_errors(world, image, rvec, tvec) < 2 * threshold)
+            inl = np.flatnonzero(reprojection_errors(world, image, rvec, tvec) < 2 * threshold)
             if len(inl) < cfg.min_pnp_inliers:
                 return None
             rvec, tvec = cv2.solvePnPRefineLM(world[inl], image[inl], np.eye(3), None, rvec, tvec)
-            inl = np.flatnonzero(_reprojection_errors(world, image, rvec, tvec) < threshold)
+            inl = np.flatnonzero(reprojection_errors(world, image, rvec, tvec) < threshold)
             if len(inl) < cfg.min_pnp_inliers:
                 return None
         inl = inl.ravel()
         rvec, tvec = cv2.solvePnPRefineLM(world[inl], image[inl], np.eye(3), None, rvec, tvec)
         pose = pose_from_rvec(rvec, tvec)
-        self._speed = float(np.linalg.norm(_centre(pose) - _centre(self._poses_cw[index - 1])))
+        self._speed = float(np.linalg.norm(camera_centre(pose) - camera_centre(self._poses_cw[index - 1])))
         self._poses_cw[index] = pose
         outliers = np.setdiff1d(rows, rows[inl])
         tracks.landmarks[outliers] = np.nan
         tracks.angles[outliers] = 0.0
         return len(inl)
 
-    def _initialise(self, index: int, tracks: _Tracks) -> int | None:
+    def _initialise(self, index: int, tracks: Tracks) -> int | None:
         """Two-view initialisation from the reference frame. Returns the inlier count, or None (not yet)."""
         cfg = self.config
         rows = np.flatnonzero(tracks.first_frame == self._reference)
@@ -324,7 +292,7 @@ class MonoVO:
             pose = make_pose(hypothesis.rotation, scale * hypothesis.translation) @ ref_pose
             inliers = rows[hypothesis.inliers]
             world, error = triangulate(ref_pose, pose, pts_ref[hypothesis.inliers], pts_cur[hypothesis.inliers])
-            angles = _ray_angles(ref_pose, pose, tracks.first_points[inliers], tracks.points[inliers])
+            angles = ray_angles(ref_pose, pose, tracks.first_points[inliers], tracks.points[inliers])
             good = (error < cfg.triangulation_threshold_px / self.camera.focal) & (angles >= cfg.min_triangulation_deg)
             best.append((int(np.count_nonzero(good)), hypothesis.model, pose, inliers, world, angles, good))
         best.sort(key=lambda item: -item[0])
@@ -347,7 +315,7 @@ class MonoVO:
         self._speed = scale / (index - self._reference)
         return len(inliers)
 
-    def _needs_keyframe(self, index: int, tracks: _Tracks) -> bool:
+    def _needs_keyframe(self, index: int, tracks: Tracks) -> bool:
         """ORB-SLAM's two reasons, simplified: the view has moved on, or too long since the last keyframe."""
         cfg = self.config
         if index - self._keyframe >= cfg.keyframe_max_gap:
@@ -355,7 +323,7 @@ class MonoVO:
         still_seen = np.isin(tracks.ids[tracks.has_landmark], self._keyframe_ids).sum()
         return still_seen < cfg.keyframe_track_ratio * len(self._keyframe_ids)
 
-    def _mark_keyframe(self, index: int, tracks: _Tracks) -> None:
+    def _mark_keyframe(self, index: int, tracks: Tracks) -> None:
         self._keyframe = index
         self._keyframe_ids = tracks.ids[tracks.has_landmark].copy()
 
@@ -364,7 +332,7 @@ class MonoVO:
         if self.config.ba_window:
             self._window.add(index, ids[rows], points[rows], landmarks[rows])
 
-    def _local_bundle_adjustment(self, tracks: _Tracks) -> None:
+    def _local_bundle_adjustment(self, tracks: Tracks) -> None:
         """Refine the window's poses and points; update this frame's landmarks and drop the bad ones."""
         cfg = self.config
         if not cfg.ba_window:
@@ -388,7 +356,7 @@ class MonoVO:
                 tracks.landmarks[row] = np.nan
                 tracks.angles[row] = 0.0
 
-    def _triangulate(self, index: int, tracks: _Tracks) -> None:
+    def _triangulate(self, index: int, tracks: Tracks) -> None:
         """Triangulate tracks whose rays are far enough apart, and refresh landmarks whose angle doubled."""
         cfg = self.config
         candidates = np.flatnonzero(tracks.first_frame < index)
@@ -396,7 +364,7 @@ class MonoVO:
             return
         pose = self._poses_cw[index]
         first_poses = np.stack([self._poses_cw[f] for f in tracks.first_frame[candidates]])
-        angles = _ray_angles(first_poses, pose, tracks.first_points[candidates], tracks.points[candidates])
+        angles = ray_angles(first_poses, pose, tracks.first_points[candidates], tracks.points[candidates])
         due = (angles >= cfg.min_triangulation_deg) & (angles >= cfg.refresh_factor * tracks.angles[candidates])
         for first in np.unique(tracks.first_frame[candidates[due]]):
             pick = due & (tracks.first_frame[candidates] == first)
@@ -405,37 +373,6 @@ class MonoVO:
             good = error < cfg.triangulation_threshold_px / self.camera.focal
             tracks.landmarks[rows[good]] = world[good]
             tracks.angles[rows[good]] = angles[pick][good]
-
-
-def _track_ids(frame_index: int, rows: np.ndarray) -> np.ndarray:
-    """Track ids unique over a sequence: the frame a track (re)started in, and its row there."""
-    return (np.int64(frame_index) << 20) | np.asarray(rows, np.int64)
-
-
-def _reprojection_errors(world: np.ndarray, image: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
-    """Normalised-plane reprojection errors [N] of world points [N, 3] against observations [N, 2]."""
-    cam = world @ cv2.Rodrigues(rvec)[0].T + tvec.reshape(3)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        err = np.linalg.norm(cam[:, :2] / cam[:, 2:] - image, axis=1)
-    return np.where(cam[:, 2] > 0, np.nan_to_num(err, nan=np.inf), np.inf)
-
-
-def _centre(pose_cw: np.ndarray) -> np.ndarray:
-    return -pose_cw[:3, :3].T @ pose_cw[:3, 3]
-
-
-def _ray_angles(poses_a: np.ndarray, pose_b: np.ndarray, pts_a: np.ndarray, pts_b: np.ndarray) -> np.ndarray:
-    """Angle (degrees) between the world-frame viewing rays of normalised points seen from two poses.
-
-    ``poses_a`` is one world-to-camera pose or one per point ([N, 4, 4]).
-    """
-    rays_a = np.concatenate([pts_a, np.ones((len(pts_a), 1))], axis=1)
-    rays_b = np.concatenate([pts_b, np.ones((len(pts_b), 1))], axis=1)
-    rot_a = np.asarray(poses_a)[..., :3, :3]
-    world_a = np.einsum("...ji,...j->...i", rot_a, rays_a) if rot_a.ndim == 3 else rays_a @ rot_a
-    world_b = rays_b @ pose_b[:3, :3]
-    cos = np.sum(world_a * world_b, axis=1) / (np.linalg.norm(world_a, axis=1) * np.linalg.norm(world_b, axis=1))
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 class VisualOdometry(MonoVO):
