@@ -56,6 +56,13 @@ def corrupt_among_good(space: Space) -> object:
     return folder
 
 
+def corrupt_pair(space: Space) -> object:
+    """A registered-pairs folder whose first image is corrupt (OpenCV would log its own line for it)."""
+    space.images("pairs/high", 1, 96)
+    space.corrupt_png("pairs/low/0.png")
+    return space.root / "pairs"
+
+
 # (case id, fragment of the error line, argv built in the case's folder)
 CASES: list[tuple[str, str, Build]] = [
     # 2. --force replaces only what the same command wrote: the user's files stay, byte for byte
@@ -143,6 +150,9 @@ CASES: list[tuple[str, str, Build]] = [
      lambda s: export(s, "--parity-images", corrupt_among_good(s), "-o", s.root / "o")),
     ("quantise-calibration-corrupt-png", "cannot read image",
      lambda s: quantise(s, "--calibration", s.corrupt_png("cal/a.png").parent, "-o", s.root / "q")),
+    ("eval-corrupt-png", "cannot decode image", lambda s: ["eval", "pairs", "--data", corrupt_pair(s), "--model", "orb"]),
+    ("label-only-corrupt-images", "none of the 1 image files",
+     lambda s: ["label", "--teacher", "shi-tomasi", "--images", s.corrupt_png("bad/a.png").parent, "--out", s.root / "l"]),
     ("quantise-manifest-without-sha256", "records no sha256",
      lambda s: ["quantise", "--artefact", s.artefact_without_sha256(), "--mode", "int8", "-o", s.root / "q"]),
     ("eval-manifest-without-sha256", "records no sha256",
@@ -173,3 +183,18 @@ def test_help_keeps_argparse_usage_and_names_the_environment(capsys):
     assert out.startswith("usage: toolkit") and "EDGEFEAT_DATA" in out
     assert main(["prune", "--help"]) == 0
     assert "$EDGEFEAT_DATA" in capsys.readouterr().out
+
+
+def test_a_first_label_run_that_fails_leaves_no_store(bad_input_assets, tmp_path, capsys, monkeypatch):
+    """A store that holds nothing would refuse the corrected rerun (other settings): a failed first run removes it."""
+    import toolkit.cmd_label as cmd_label
+
+    def out_of_memory(*_args, **_kwargs):
+        raise MemoryError
+
+    monkeypatch.setattr(cmd_label, "label_image", out_of_memory)
+    space = Space(tmp_path, bad_input_assets)
+    assert_refused(main, label(space, "--out", tmp_path / "labels"), capsys, "out of memory", tmp_path)
+    monkeypatch.undo()
+    rerun = label(space, "--out", tmp_path / "labels", "--size", "64x96")
+    assert main([str(arg) for arg in rerun]) == 0  # the corrected rerun is not refused

@@ -41,7 +41,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--dense", action="store_true", help="output the raw heads instead of keypoints")
     parser.add_argument("--parity-images", type=Path, metavar="DIR", help="images for the parity run (default: the 4 images shipped in export/parity_images)")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="DIR", help="artefact directory to write")
-    parser.add_argument("--force", action="store_true", help="replace an existing artefact in the output directory")
+    parser.add_argument("--force", action="store_true",
+                        help="replace an artefact exported here before (never any other folder)")
     parser.set_defaults(func=run)
 
 

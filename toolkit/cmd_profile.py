@@ -55,7 +55,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help=f"host calibration to write (--calibrate) or read (default {default_calibration_path()})")
     parser.add_argument("--no-calibration", action="store_true", help="ignore any calibration file; use the profile's figures")
     parser.add_argument("-o", "--output", type=Path, metavar="DIR", help="write profile.json, profile.md and profile.png here")
-    parser.add_argument("--force", action="store_true", help="replace a non-empty output directory")
+    parser.add_argument("--force", action="store_true",
+                        help="replace a profile report written here before (never any other folder)")
     parser.set_defaults(func=run)
 
 

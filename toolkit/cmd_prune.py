@@ -52,7 +52,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default 1e-4)")
     parser.add_argument("--size", metavar="HxW", default="240x320", help="distillation and measurement size (default 240x320)")
     parser.add_argument("-o", "--output", type=Path, metavar="OUT", help="pruned checkpoint (default <checkpoint>-pruned<pct>.safetensors)")
-    parser.add_argument("--force", action="store_true", help="replace an existing output checkpoint")
+    parser.add_argument("--force", action="store_true",
+                        help="replace a pruned checkpoint and report written before (never the source or other files)")
     parser.add_argument("--no-eval", action="store_true", help="skip the evaluation metrics (HPatches v_dogman, LOL pairs)")
     parser.set_defaults(func=run)
 

@@ -41,7 +41,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--keep-sensitive", type=int, nargs="?", const=3, default=0, metavar="N",
                         help="keep the N most sensitive convs in FP32 (N defaults to 3 when the flag is given alone)")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="OUT", help="directory for the quantised artefact")
-    parser.add_argument("--force", action="store_true", help="replace a non-empty output directory")
+    parser.add_argument("--force", action="store_true",
+                        help="replace a quantised artefact written here before (never any other folder)")
     parser.set_defaults(func=run)
 
 
