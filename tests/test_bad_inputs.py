@@ -150,6 +150,7 @@ CASES: list[tuple[str, str, Build]] = [
      lambda s: export(s, "--parity-images", corrupt_among_good(s), "-o", s.root / "o")),
     ("quantise-calibration-corrupt-png", "cannot read image",
      lambda s: quantise(s, "--calibration", s.corrupt_png("cal/a.png").parent, "-o", s.root / "q")),
+    ("eval-nan-threshold", "--threshold a positive number", lambda s: evaluate(s, "--threshold", "nan")),
     ("eval-corrupt-png", "cannot decode image", lambda s: ["eval", "pairs", "--data", corrupt_pair(s), "--model", "orb"]),
     ("label-only-corrupt-images", "none of the 1 image files",
      lambda s: ["label", "--teacher", "shi-tomasi", "--images", s.corrupt_png("bad/a.png").parent, "--out", s.root / "l"]),

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -98,8 +99,9 @@ def _unique_labels(labels: list[str]) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     if args.max_keypoints < 1:
         raise ToolkitError("--max-keypoints must be at least 1")
-    if args.nms < 0 or args.threshold <= 0:
-        raise ToolkitError("--nms must be >= 0 and --threshold > 0")
+    if args.nms < 0 or not (math.isfinite(args.threshold) and args.threshold > 0):  # NaN compares False
+        raise ToolkitError(f"--nms must be >= 0 and --threshold a positive number of pixels, got {args.nms} and "
+                           f"{args.threshold}")
     config = EvalConfig(size=parse_size(args.size), correct_threshold=args.threshold, normalise=args.normalise)
     detector_config = DetectorConfig(max_keypoints=args.max_keypoints, nms_radius=args.nms)
     if args.output is not None:
