@@ -9,8 +9,8 @@ import pytest
 
 from bad_inputs_support import KITTI_06
 from test_vo_odometry import BLANK, CAMERA, SyntheticExtractor, straight_then_turn
-from vo_runtime import CalibrationError, Camera, FeatureExtractor, OrbExtractor, VisualOdometry, VORuntimeError
-from vo_runtime.errors import FrameError
+from vo_runtime import (CalibrationError, Camera, FeatureExtractor, FrameError, OrbExtractor, VisualOdometry,
+                        VORuntimeError)
 from vo_runtime.features import to_gray_u8
 from vo_runtime.odometry import LOST, SKIPPED, TRACKING
 

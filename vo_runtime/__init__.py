@@ -3,12 +3,12 @@
 Depends on numpy, OpenCV, onnxruntime and scipy (bundle adjustment); never on torch.
 """
 from vo_runtime.camera import Camera, load_camera
-from vo_runtime.errors import ArtefactError, CalibrationError, VORuntimeError
+from vo_runtime.errors import ArtefactError, CalibrationError, FrameError, VORuntimeError
 from vo_runtime.features import FeatureExtractor, Features, OrbExtractor
 from vo_runtime.odometry import MonoVO, VisualOdometry, VOConfig, VOResult
 from vo_runtime.trajectory import write_trajectory
 
 __all__ = [
-    "ArtefactError", "CalibrationError", "Camera", "FeatureExtractor", "Features", "MonoVO", "OrbExtractor",
+    "ArtefactError", "CalibrationError", "Camera", "FeatureExtractor", "Features", "FrameError", "MonoVO", "OrbExtractor",
     "VOConfig", "VOResult", "VORuntimeError", "VisualOdometry", "load_camera", "write_trajectory",
 ]
