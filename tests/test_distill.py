@@ -163,7 +163,7 @@ def test_distill_refuses_labels_without_descriptors(tmp_path: Path, shared_data:
     for source in sorted((shared_data / "train_images" / "coco128").glob("*.jpg"))[:3]:
         (images / source.name).symlink_to(source)
     assert main(["label", "--teacher", "shi-tomasi", "--images", str(images), "--out", str(tmp_path / "l"),
-                 "--num-homographies", "1", "--size", "32x48"]) == 0
+                 "--num-homographies", "1", "--size", "32x48", "--max-keypoints", "100"]) == 0
     capsys.readouterr()
     assert main(["train", "--images", str(images), "--labels", str(tmp_path / "l"), "--out", str(tmp_path / "r"),
                  "--steps", "1", "--threads", "1"]) == 2

@@ -1,0 +1,87 @@
+"""The shipped default weights: they load from the package, carry a model card whose checksum matches, and
+detect repeatable, matchable points on real images under a known homography."""
+from __future__ import annotations
+
+import hashlib
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from export.parity import default_parity_paths
+from models.checkpoint import load_checkpoint
+from models.weights import SHIPPED, model_card, resolve_checkpoint, shipped_checkpoint
+from toolkit.evaluation.detectors import DetectorConfig
+from toolkit.evaluation.metrics import (
+    descriptor_distances,
+    matching_score,
+    mutual_nearest_neighbours,
+    repeatability_and_localisation,
+)
+from toolkit.evaluation.torch_models import detect_with_network
+
+torch.set_num_threads(1)
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_weights_load_and_match_their_model_card(name: str) -> None:
+    path = shipped_checkpoint(name)
+    model, info = load_checkpoint(path)
+    assert info.arch == "featurenet"
+    assert model.config.activation == name.rsplit("-", 1)[1]
+    assert model.config.pixel_head_channels > 0
+    card = model_card(name).read_text()
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    assert re.search(rf"sha256[^0-9a-f]*{digest}", card), "the model card must record the shipped file's sha256"
+    for heading in ("Data and licences", "Teacher", "Recipe", "Metrics", "Intended use", "Limits"):
+        assert heading in card, heading
+    assert path.stat().st_size < 2_000_000  # small enough for git
+
+
+def test_default_names_resolve_to_the_shipped_files() -> None:
+    assert resolve_checkpoint(None) == shipped_checkpoint("featurenet-elu")
+    assert resolve_checkpoint("default-relu") == shipped_checkpoint("featurenet-relu")
+    assert resolve_checkpoint("runs/x.safetensors") == Path("runs/x.safetensors")
+
+
+def _warp(gray: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A known mild homography (rotation, zoom, perspective) and the warped image."""
+    rng = np.random.default_rng(seed)
+    height, width = gray.shape
+    centre = np.array([[1, 0, -width / 2], [0, 1, -height / 2], [0, 0, 1]])
+    angle, zoom = rng.uniform(-0.2, 0.2), rng.uniform(0.9, 1.15)
+    rotation = np.array([[zoom * np.cos(angle), -zoom * np.sin(angle), 0], [zoom * np.sin(angle), zoom * np.cos(angle), 0], [0, 0, 1]])
+    perspective = np.array([[1, 0, 0], [0, 1, 0], [rng.uniform(-3e-4, 3e-4), rng.uniform(-3e-4, 3e-4), 1]])
+    homography = np.linalg.inv(centre) @ perspective @ rotation @ centre
+    return cv2.warpPerspective(gray, homography, (width, height)), homography
+
+
+def _images(shared_data: Path) -> list[np.ndarray]:
+    shipped = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in default_parity_paths() if "hopper" in p.name]
+    real = cv2.imread(str(shared_data / "hpatches_v_dogman" / "v_dogman" / "1.ppm"), cv2.IMREAD_GRAYSCALE)
+    return shipped + [cv2.resize(real, (320, 240), interpolation=cv2.INTER_AREA)]
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_weights_detect_repeatable_matchable_points(name: str, shared_data: Path) -> None:
+    model, _ = load_checkpoint(shipped_checkpoint(name))
+    config = DetectorConfig(max_keypoints=300)
+    repeatabilities, scores, shuffled_scores = [], [], []
+    for seed, gray in enumerate(_images(shared_data)):
+        warped, homography = _warp(gray, seed)
+        a, b = detect_with_network(model, gray, config), detect_with_network(model, warped, config)
+        assert len(a) >= 100 and len(b) >= 100
+        repeatability, error = repeatability_and_localisation(a.keypoints, b.keypoints, homography, gray.shape, warped.shape)
+        matches = mutual_nearest_neighbours(descriptor_distances(a.descriptors, b.descriptors))
+        scores.append(matching_score(a.keypoints, b.keypoints, matches, homography, gray.shape, warped.shape))
+        shuffled = b.descriptors[np.random.default_rng(0).permutation(len(b))]
+        matches = mutual_nearest_neighbours(descriptor_distances(a.descriptors, shuffled))
+        shuffled_scores.append(matching_score(a.keypoints, b.keypoints, matches, homography, gray.shape, warped.shape))
+        repeatabilities.append(repeatability)
+        assert error < 2.0
+    # A random or untrained network repeats ~0.1-0.2 of its points and matches almost none.
+    assert np.mean(repeatabilities) > 0.4, repeatabilities
+    assert np.mean(scores) > 0.25 and np.mean(scores) > 5 * np.mean(shuffled_scores) + 0.05, (scores, shuffled_scores)
