@@ -14,8 +14,8 @@ import torch.nn.functional as F
 
 from toolkit.cli import main
 from toolkit.training.adaptation import AdaptationConfig
-from toolkit.training.distill_losses import DistillLossConfig, distillation_loss, info_nce_loss, sample_map
-from toolkit.training.distill_pairs import DistillPairs, MultiScaleConfig
+from toolkit.training.distill_losses import DistillLossConfig, distillation_loss, info_nce_loss
+from toolkit.training.distill_pairs import DistillPairs, MultiScaleConfig, sample_map
 from toolkit.training.homographies import HomographyConfig, points_inside, warp_points
 from toolkit.training.label_store import LabelStore
 from toolkit.training.losses import cell_centres

@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from toolkit.training.distill_pairs import sample_map
 from toolkit.training.homographies import points_inside, warp_points
 from toolkit.training.losses import cell_centres, detector_loss
 
@@ -52,16 +53,6 @@ def distillation_loss(projected: torch.Tensor, teacher: torch.Tensor, valid: tor
     cosine = (projected.float() * teacher.float()).sum(dim=1)
     weights = valid.float()
     return ((1.0 - cosine) * weights).sum() / weights.sum().clamp_min(1.0)
-
-
-def sample_map(descriptors: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """Bilinear sample of a cell-resolution map at pixel points. [D, h, w], [N, 2] (x, y) -> [N, D] unit."""
-    _, height, width = descriptors.shape
-    u = (points[:, 0] + 0.5) / 8.0 - 0.5
-    v = (points[:, 1] + 0.5) / 8.0 - 0.5
-    grid = torch.stack([u * 2.0 / max(width - 1, 1) - 1.0, v * 2.0 / max(height - 1, 1) - 1.0], dim=-1)
-    sampled = F.grid_sample(descriptors[None].float(), grid.view(1, 1, -1, 2), mode="bilinear", align_corners=True)
-    return F.normalize(sampled[0, :, 0].transpose(0, 1), p=2.0, dim=1)
 
 
 def info_nce_loss(

@@ -69,6 +69,20 @@ def render_view(base: np.ndarray, homography: torch.Tensor, size: tuple[int, int
     return view
 
 
+def sample_map(descriptors: torch.Tensor, points: torch.Tensor, stride: int = CELL) -> torch.Tensor:
+    """Bilinear sample of a map at 1/stride resolution at pixel points (centres at integers on both).
+
+    descriptors [D, h, w], points [N, 2] (x, y) -> [N, D], unit L2 norm; points beyond the outer map
+    centres read zero-padded values (they are masked out by the callers).
+    """
+    _, height, width = descriptors.shape
+    u = (points[:, 0] + 0.5) / stride - 0.5
+    v = (points[:, 1] + 0.5) / stride - 0.5
+    grid = torch.stack([u * 2.0 / max(width - 1, 1) - 1.0, v * 2.0 / max(height - 1, 1) - 1.0], dim=-1)
+    sampled = F.grid_sample(descriptors[None].float(), grid.view(1, 1, -1, 2), mode="bilinear", align_corners=True)
+    return F.normalize(sampled[0, :, 0].transpose(0, 1), p=2.0, dim=1)
+
+
 def sample_teacher(descriptors: torch.Tensor, stride: int, cells_to_base: torch.Tensor, base: tuple[int, int],
                    size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
     """The teacher's descriptor at every student cell centre of a view.
@@ -85,12 +99,7 @@ def sample_teacher(descriptors: torch.Tensor, stride: int, cells_to_base: torch.
     centres = torch.stack([xs, ys], dim=-1).reshape(-1, 2) * CELL + (CELL - 1) / 2
     in_base = warp_points(centres, cells_to_base)
     valid = points_inside(in_base, base, border=2)
-    map_h, map_w = descriptors.shape[-2:]
-    u = (in_base[:, 0] + 0.5) / stride - 0.5  # descriptor-map coordinates, centres at integers
-    v = (in_base[:, 1] + 0.5) / stride - 0.5
-    grid = torch.stack([u * 2.0 / max(map_w - 1, 1) - 1.0, v * 2.0 / max(map_h - 1, 1) - 1.0], dim=-1)
-    sampled = F.grid_sample(descriptors[None].float(), grid.view(1, 1, -1, 2), mode="bilinear", align_corners=True)
-    sampled = F.normalize(sampled[0, :, 0], p=2.0, dim=0).reshape(-1, height, width)
+    sampled = sample_map(descriptors, in_base, stride).transpose(0, 1).reshape(-1, height, width)
     return sampled, valid.reshape(height, width)
 
 
