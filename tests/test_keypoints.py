@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import torch
 
-from models.keypoints import extract_keypoints, heatmap_from_logits, max_pool_nms, sample_descriptors, top_k_keypoints
+from models.keypoints import (extract_keypoints, heatmap_from_logits, max_pool_nms, refine_keypoints, sample_descriptors,
+                              top_k_keypoints)
 
 
 def test_heatmap_places_each_cell_channel_at_its_pixel():
@@ -52,3 +53,15 @@ def test_extract_keypoints_counts_valid_rows_and_drops_the_border():
     assert int(out["num_valid"][0]) == 1
     assert out["keypoints"][0].tolist() == [12.0, 19.0]
     assert out["descriptors"].shape == (5, 32)
+
+
+def test_refinement_moves_a_peak_to_the_centroid_of_its_window():
+    heat = torch.zeros(1, 1, 16, 16)
+    heat[0, 0, 5, 7] = 0.6  # peak at x=7, y=5 ...
+    heat[0, 0, 5, 8] = 0.3  # ... with mass to its right ...
+    heat[0, 0, 4, 7] = 0.1  # ... and a little above
+    heat[0, 0, 9, 3] = 0.5  # a lone peak stays where it is
+    refined = refine_keypoints(heat, torch.tensor([[7.0, 5.0], [3.0, 9.0], [0.0, 0.0]]))
+    assert torch.allclose(refined[0], torch.tensor([7.0 + 0.3, 5.0 - 0.1]), atol=1e-6)
+    assert torch.equal(refined[1], torch.tensor([3.0, 9.0]))
+    assert torch.equal(refined[2], torch.tensor([0.0, 0.0]))  # an empty window (padding rows) does not move
