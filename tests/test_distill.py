@@ -156,6 +156,36 @@ def test_a_short_distill_run_trains_and_picks_the_best_by_matching_score(cache, 
     assert float(log[0]["lr"]) < float(log[1]["lr"]) or float(log[1]["lr"]) > float(log[-1]["lr"])  # warm-up, then decay
     assert (run / "best.safetensors").is_file() and (run / "val.png").is_file()
 
+    # A fine-tune starts from that run's weights and projection with a fresh schedule: at a vanishing lr the
+    # new run's weights are the old run's, and its first descriptor loss is the old run's level, not a restart.
+    source = torch.load(run / "train_state.pt", weights_only=True)
+    tune = {**config, "init": str(run), "lr": 1e-12, "validate_every": 100, "checkpoint_every": 100}
+    (tmp_path / "t.json").write_text(json.dumps(tune))
+    assert main(["train", "--images", str(images), "--labels", str(labels), "--config", str(tmp_path / "t.json"),
+                 "--steps", "1", "--batch", "2", "--out", str(tmp_path / "tuned")]) == 0
+    tuned = torch.load(tmp_path / "tuned" / "train_state.pt", weights_only=True)
+    assert tuned["step"] == 1
+    learned = [name for name in source["model"] if "running_" not in name and "num_batches" not in name]  # BN stats move
+    assert len(learned) > 10
+    for name in learned:
+        value = source["model"][name]
+        assert torch.allclose(tuned["model"][name].float(), value.float(), atol=1e-6), name
+    for name, value in source["projection"].items():
+        assert torch.allclose(tuned["projection"][name], value, atol=1e-6), name
+
+
+def test_init_from_a_mismatched_model_is_one_line(cache, tmp_path: Path, capsys) -> None:
+    images, labels = cache
+    from models.checkpoint import build_model, save_checkpoint
+
+    save_checkpoint(build_model("featurenet", {"widths": [8, 16, 32, 32], "descriptor_dim": 64}), tmp_path / "small.safetensors")
+    (tmp_path / "c.json").write_text(json.dumps({"init": str(tmp_path / "small.safetensors"), "device": "cpu"}))
+    assert main(["train", "--images", str(images), "--labels", str(labels), "--config", str(tmp_path / "c.json"),
+                 "--steps", "1", "--threads", "1", "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: cannot initialise") and "do not match" in err[0]
+    assert not (tmp_path / "r").exists()
+
 
 def test_distill_refuses_labels_without_descriptors(tmp_path: Path, shared_data: Path, capsys) -> None:
     images = tmp_path / "images"

@@ -26,6 +26,7 @@ class TrainConfig:
     recipe: str = "distill"  # "distill" (teacher keypoints + descriptors) or "paper" (SuperPoint's CE + hinge)
     arch: str = "featurenet"  # or "superpoint"
     model: dict = field(default_factory=dict)  # FeatureNetConfig / SuperPointConfig fields
+    init: str = ""  # start from these weights: a run folder (model + projection) or a .safetensors checkpoint
     steps: int = 20000
     batch: int = 8  # pairs per step and per process
     lr: float = 1e-3  # peak learning rate (Adam)

@@ -97,13 +97,39 @@ def _save_state(path: Path, state: dict) -> None:
     write_atomic(path, buffer.getvalue())
 
 
-def _load_state(path: Path) -> dict:
+def _load_state(path: Path, why: str = "cannot resume") -> dict:
     if not path.is_file():
-        raise ToolkitError(f"cannot resume: no checkpoint {path}")
+        raise ToolkitError(f"{why}: no checkpoint {path}")
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # any unpickling/zip error means the same thing to the user
-        raise ToolkitError(f"cannot resume: {path} is corrupt or unreadable ({type(exc).__name__})") from None
+        raise ToolkitError(f"{why}: {path} is corrupt or unreadable ({type(exc).__name__})") from None
+
+
+def initialise_from(source: str, model: torch.nn.Module, projection: torch.nn.Module | None) -> None:
+    """Load starting weights for a new run (fresh optimizer and schedule: a fine-tune, not a resume).
+
+    ``source`` is another run's folder (its ``train_state.pt``: the model and, for distill, the trained
+    projection, so the descriptor loss does not restart from a random projection) or an EdgeFeat
+    ``.safetensors`` checkpoint (the model only).
+    """
+    from models.checkpoint import CheckpointError, load_checkpoint
+
+    path = Path(source)
+    try:
+        if path.is_dir():
+            state = _load_state(path / "train_state.pt", "cannot initialise")
+            model.load_state_dict(state["model"])
+            if projection is not None and state.get("projection"):
+                projection.load_state_dict(state["projection"])
+        else:
+            loaded, _ = load_checkpoint(path)
+            model.load_state_dict(loaded.state_dict())
+    except CheckpointError as exc:
+        raise ToolkitError(f"cannot initialise: {exc}") from None
+    except (KeyError, RuntimeError) as exc:
+        raise ToolkitError(f"cannot initialise from {path}: its weights do not match this model "
+                           f"({str(exc).splitlines()[0][:120]})") from None
 
 
 def resolve_config(
@@ -187,6 +213,8 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
         keep_deformable_in_float32(model)
     step, best_score = 0, -1.0
     state_path = run / "train_state.pt"
+    if config.init and not resume:
+        initialise_from(config.init, model, projection)
     if resume:
         state = _load_state(state_path)
         try:
