@@ -65,6 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", type=Path, help="output directory (written as a whole)")
     parser.add_argument("--force", action="store_true", help="replace an earlier vo run in the output directory")
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads (default 1)")
+    parser.add_argument("--providers", default="auto",
+                        help="onnxruntime execution providers: auto (default: the best available of tensorrt, cuda, "
+                        "cpu) or a list such as cuda,cpu; a missing one is an error")
     parser.add_argument("--max-keypoints", type=int, default=2000, help="ORB features per frame (default 2000)")
     parser.add_argument("--max-frames", type=int, help="stop after this many frames")
     parser.add_argument("--lowlight", help="GAMMA,SIGMA[,GAIN]: darken and add noise to every frame")
@@ -111,7 +114,10 @@ def _check_options(args: argparse.Namespace) -> None:
 def _progress(items: Iterator, total: int, enabled: bool) -> Iterator:
     if not enabled:
         return items
-    from tqdm import tqdm
+    try:
+        from tqdm import tqdm
+    except ImportError:  # a runtime-only install has no tqdm: run without a bar
+        return items
 
     # disable=None: no bar when stderr is not a terminal, so logs and errors stay line by line
     return tqdm(items, total=total, desc="vo", unit="frame", file=sys.stderr, disable=None)
@@ -124,8 +130,9 @@ def _load_groundtruth(args: argparse.Namespace, sequence: Sequence) -> Any:
     path = sequence.groundtruth if args.gt == "auto" else Path(args.gt)
     if path is None:
         raise VORuntimeError(f"--gt auto: {args.images} has no poses.txt or groundtruth.txt")
-    from vo_runtime.evaluate import load_groundtruth
+    from vo_runtime.evaluate import load_groundtruth, require_evaluation_packages
 
+    require_evaluation_packages()
     return load_groundtruth(path, "tum" if sequence.layout == "tum" else "kitti", sequence.timestamps)
 
 
@@ -142,6 +149,9 @@ def _track_file(vo: VisualOdometry, path: Path, timestamp: float, lowlight: tupl
 
 def run(args: argparse.Namespace) -> int:
     _check_options(args)
+    from vo_runtime.providers import parse_providers
+
+    providers = parse_providers(args.providers)
     lowlight = _parse_lowlight(args.lowlight)
     if args.output is not None:
         check_replaceable(args.output, VO_RUN, args.force)
@@ -151,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
     groundtruth = _load_groundtruth(args, sequence)
     frames = sequence.frames[: args.max_frames]
     extractor = (OrbExtractor(args.max_keypoints) if args.features == "orb"
-                 else FeatureExtractor(args.artefact, threads=args.threads))
+                 else FeatureExtractor(args.artefact, threads=args.threads, providers=providers))
     vo = VisualOdometry(extractor, sequence.camera)
     for index, path in enumerate(_progress(iter(frames), len(frames), not args.no_progress)):
         _track_file(vo, path, sequence.timestamps[index], lowlight, index)
@@ -162,6 +172,7 @@ def run(args: argparse.Namespace) -> int:
     states = [r.status for r in vo.results]
     summary: dict[str, Any] = {
         "features": args.features if args.features == "orb" else str(args.artefact),
+        "providers": ",".join(extractor.providers),
         "sequence": str(args.images), "layout": sequence.layout, "lowlight": args.lowlight,
         "frames": len(vo.results), "states": {s: states.count(s) for s in dict.fromkeys(states)},
         "skipped_frames": len(skipped),

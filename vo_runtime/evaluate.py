@@ -15,6 +15,19 @@ from vo_runtime.errors import VORuntimeError, first_line
 from vo_runtime.odometry import INITIALISING, SKIPPED, VOResult
 
 
+EVALUATION_EXTRA = "edgefeat[eval]"
+
+
+def require_evaluation_packages() -> None:
+    """Raise one line naming the extra when evo or matplotlib is missing (a runtime-only install)."""
+    import importlib.util
+
+    missing = [name for name in ("evo", "matplotlib") if importlib.util.find_spec(name) is None]
+    if missing:
+        raise VORuntimeError(f"--gt needs {' and '.join(missing)}, which a runtime-only install leaves out: "
+                             f"pip install '{EVALUATION_EXTRA}'")
+
+
 def load_groundtruth(path: str | Path, layout: str, timestamps: Seq[float]) -> Any:
     """Ground truth as an evo trajectory: KITTI ``poses.txt`` (12 numbers a line, one line per frame, stamped
     with ``timestamps``) or TUM ``groundtruth.txt``. Raises `VORuntimeError` for anything else, before a run."""

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import cv2
 import numpy as np
@@ -79,10 +80,16 @@ class FeatureExtractor:
         threads: onnxruntime intra-op threads (0 = onnxruntime's default).
         resize_policy: ``"resize"`` scales any image to the artefact's input size and maps keypoints back;
             ``"reject"`` raises on another size. ``None`` takes the manifest's ``input.resize_policy``.
+        providers: ``"auto"`` (default: the best available of TensorRT FP16, CUDA, CPU), or the ones to use,
+            e.g. ``"cuda,cpu"`` or ``["cpu"]``; a requested provider that is missing raises `VORuntimeError`.
+            ``self.providers`` lists those the session really runs on, best first.
     """
 
-    def __init__(self, artefact: str | Path, threads: int = 1, resize_policy: str | None = None) -> None:
+    def __init__(self, artefact: str | Path, threads: int = 1, resize_policy: str | None = None,
+                 providers: str | Sequence[str] | None = "auto") -> None:
         import onnxruntime as ort
+
+        from vo_runtime.providers import choose_providers, parse_providers, short_name
 
         if not isinstance(threads, (int, np.integer)) or threads < 0:
             raise VORuntimeError(f"threads must be an integer >= 0 (0: onnxruntime's choice), got {threads!r}")
@@ -99,15 +106,20 @@ class FeatureExtractor:
         self.resize_policy = resize_policy or self.manifest["input"].get("resize_policy", "resize")
         if self.resize_policy not in ("resize", "reject"):
             raise ArtefactError(f"unknown resize policy {self.resize_policy!r}")
+        chain = choose_providers(parse_providers(providers), ort.get_available_providers())
+        for name, settings in chain:
+            if "trt_engine_cache_path" in settings:  # TensorRT writes engines there; it must exist first
+                Path(settings["trt_engine_cache_path"]).mkdir(parents=True, exist_ok=True)
         options = ort.SessionOptions()
         options.intra_op_num_threads = int(threads)
         options.inter_op_num_threads = 1
         try:
-            self.session = ort.InferenceSession(
-                str(self.directory / self.manifest["onnx"]["file"]), options, providers=["CPUExecutionProvider"]
-            )
+            self.session = ort.InferenceSession(str(self.directory / self.manifest["onnx"]["file"]), options,
+                                                providers=[name for name, _ in chain],
+                                                provider_options=[settings for _, settings in chain])
         except Exception as exc:  # onnxruntime raises several unrelated types for a bad model
             raise ArtefactError(f"onnxruntime cannot load {self.directory}: {first_line(exc)}") from None
+        self.providers = [short_name(p) for p in self.session.get_providers()]
         self.input_name = self.session.get_inputs()[0].name
 
     def __call__(self, image: np.ndarray) -> Features:
@@ -142,6 +154,7 @@ class OrbExtractor:
 
     def __init__(self, max_keypoints: int = 1000, fast_threshold: int = 20, levels: int = 1) -> None:
         self.orb = cv2.ORB_create(nfeatures=int(max_keypoints), fastThreshold=int(fast_threshold), nlevels=int(levels))
+        self.providers = ["cpu"]  # OpenCV on the CPU, reported like an artefact's onnxruntime providers
 
     def __call__(self, image: np.ndarray) -> Features:
         gray = to_gray_u8(image)
