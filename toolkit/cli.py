@@ -41,6 +41,18 @@ Exit codes: 0 done, 2 bad input (one `error:` line on stderr), 1 internal error,
 """
 
 
+# What the toolkit imports beyond the runtime (pyproject's `toolkit` extra), by import name.
+TOOLKIT_EXTRA = "edgefeat[toolkit]"
+TOOLKIT_MODULES = ("torch", "onnx", "onnxsim", "safetensors", "fvcore", "torch_pruning", "tqdm", "matplotlib", "evo")
+
+
+def missing_toolkit_modules() -> list[str]:
+    """Import names of the toolkit extra that are not installed (a runtime-only install lacks them all)."""
+    import importlib.util
+
+    return [name for name in TOOLKIT_MODULES if importlib.util.find_spec(name) is None]
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineArgumentParser(
         prog="toolkit",
@@ -57,6 +69,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    missing = missing_toolkit_modules()
+    if missing:  # checked before any command imports them, so the user reads what to install, not a traceback
+        print(f"error: toolkit needs the '{TOOLKIT_EXTRA}' extra (missing: {', '.join(missing)}): "
+              f"pip install '{TOOLKIT_EXTRA}'; the VO alone runs as python -m vo_runtime", file=sys.stderr)
+        return 2
     return run_guarded(build_parser(), argv, (ToolkitError, VORuntimeError))
 
 
