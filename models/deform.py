@@ -20,6 +20,16 @@ from torch import nn
 DeformStrategy = Literal["torch", "native", "grid_sample"]
 
 
+def is_depthwise(weight: torch.Tensor, channels: int) -> bool:
+    """True for a depthwise kernel [C, 1, kh, kw] over C > 1 channels, False for a dense [Cout, C, kh, kw];
+    any other grouping is refused."""
+    if weight.shape[1] == channels:
+        return False
+    if weight.shape[1] == 1 and weight.shape[0] == channels:
+        return True
+    raise ValueError(f"deformable kernel {tuple(weight.shape)} is neither dense nor depthwise over {channels} channels")
+
+
 def _output_size(size: int, kernel: int, stride: int, padding: int, dilation: int) -> int:
     return (size + 2 * padding - dilation * (kernel - 1) - 1) // stride + 1
 
@@ -34,12 +44,12 @@ def deform_conv2d(
     padding: int = 1,
     dilation: int = 1,
 ) -> torch.Tensor:
-    """Deformable convolution by bilinear gathering (groups = offset groups = 1).
+    """Deformable convolution by bilinear gathering (offset groups = 1; groups = 1, or C for depthwise).
 
     Args:
         x: input [B, C, H, W].
         offset: [B, 2*kh*kw, Ho, Wo], (dy, dx) per kernel tap in row-major tap order.
-        weight: [Cout, C, kh, kw].
+        weight: [Cout, C, kh, kw] (dense), or [C, 1, kh, kw] (depthwise: each channel its own kernel).
         bias: [Cout] or None.
         mask: modulation [B, kh*kw, Ho, Wo] or None (DCN v1).
     Returns:
@@ -47,6 +57,7 @@ def deform_conv2d(
     """
     batch, channels, height, width = x.shape
     out_channels, _, kh, kw = weight.shape
+    depthwise = is_depthwise(weight, channels)
     taps = kh * kw
     out_h = _output_size(height, kh, stride, padding, dilation)
     out_w = _output_size(width, kw, stride, padding, dilation)
@@ -87,6 +98,12 @@ def deform_conv2d(
     corners = torch.index_select(pixels, 0, flat_index).reshape(4, batch, taps, locations, channels)
     sampled = (corners * weights.reshape(4, batch, taps, locations, 1).to(x.dtype)).sum(0)  # [B, taps, L, C]
 
+    if depthwise:  # each channel weighs its own taps: a multiply and a sum over taps, no matmul
+        kernel = weight.reshape(channels, taps).transpose(0, 1).reshape(1, taps, 1, channels)
+        out = (sampled * kernel).sum(1)  # [B, L, C]
+        if bias is not None:
+            out = out + bias
+        return out.permute(0, 2, 1).reshape(batch, out_channels, out_h, out_w)
     columns = sampled.permute(0, 2, 1, 3).reshape(batch, locations, taps * channels)
     kernel = weight.permute(2, 3, 1, 0).reshape(taps * channels, out_channels)  # tap-major, then channel
     out = torch.matmul(columns, kernel)  # [B, L, Cout]
@@ -109,11 +126,12 @@ def deform_conv2d_grid_sample(
     Neither target can run GridSample fast (TensorRT 8.0 lacks it, onnxruntime's kernel is slow), so
     exports keep the ``torch`` (portable) and ``native`` paths.
 
-    Shapes as `deform_conv2d`: x [B, C, H, W], offset [B, 18, H, W], weight [Cout, C, 3, 3],
-    mask [B, 9, H, W] or None -> [B, Cout, H, W].
+    Shapes as `deform_conv2d`: x [B, C, H, W], offset [B, 18, H, W], weight [Cout, C, 3, 3] or depthwise
+    [C, 1, 3, 3], mask [B, 9, H, W] or None -> [B, Cout, H, W].
     """
     batch, channels, height, width = x.shape
     out_channels = weight.shape[0]
+    depthwise = is_depthwise(weight, channels)
     taps = 9
     dtype, device = torch.promote_types(x.dtype, torch.float32), x.device
     offset = offset.to(dtype).reshape(batch, taps, 2, height, width)
@@ -130,6 +148,9 @@ def deform_conv2d_grid_sample(
     ).reshape(batch, channels, taps, height, width)
     if mask is not None:
         sampled = sampled * mask.to(dtype).reshape(batch, 1, taps, height, width)
+    if depthwise:  # [B, C, taps, H, W] x [C, taps] -> [B, C, H, W]
+        out = torch.einsum("bckhw,ck->bchw", sampled.to(x.dtype), weight.reshape(channels, taps).to(x.dtype))
+        return out if bias is None else out + bias.view(1, -1, 1, 1)
     # [B, C, taps, H, W] x [Cout, C, taps] -> [B, Cout, H, W]
     out = torch.einsum("bckhw,ock->bohw", sampled.to(x.dtype), weight.reshape(out_channels, channels, taps).to(x.dtype))
     if bias is not None:
@@ -151,6 +172,10 @@ def _native_deform_conv2d_shape(x, offset, weight, bias, mask):  # shapes only, 
 
 
 def _deform_conv_symbolic(g, x, offset, weight, bias, mask):  # pragma: no cover - runs inside the exporter
+    from torch.onnx import symbolic_helper
+
+    # group = C / (kernel's input channels): 1 for a dense kernel, C for a depthwise one.
+    group = symbolic_helper._get_tensor_sizes(x)[1] // symbolic_helper._get_tensor_sizes(weight)[1]
     inputs = [x, weight, offset, bias]
     if not (mask.node().kind() == "prim::Constant" and mask.type().kind() == "NoneType"):
         inputs.append(mask)
@@ -158,7 +183,7 @@ def _deform_conv_symbolic(g, x, offset, weight, bias, mask):  # pragma: no cover
         "DeformConv",
         *inputs,
         dilations_i=[1, 1],
-        group_i=1,
+        group_i=group,
         kernel_shape_i=[3, 3],
         offset_group_i=1,
         pads_i=[1, 1, 1, 1],
@@ -178,12 +203,16 @@ class DeformableConv(nn.Module):
     (depthwise 3x3 + BN + ReLU, then pointwise 1x1 to 2*9 offsets [+ 9 mask logits]) starts at zero, so
     an untrained layer is exactly a plain 3x3 conv (with mask 0.5 if modulated).
 
+    With ``depthwise`` the sampled 3x3 kernel is depthwise (one per channel) and a 1x1 ``pointwise`` conv
+    mixes channels, like every other block of the network: 9*C + C*Cout weights instead of 9*C*Cout, and
+    the channel mixing is an ordinary Conv that INT8 can quantise.
+
     Attributes:
         strategy: ``"torch"`` (the portable export, and the reference), ``"native"`` (ONNX DeformConv) or
             ``"grid_sample"`` (training only: fastest on CPU, not exportable to either target).
     """
 
-    def __init__(self, in_channels: int, out_channels: int, modulated: bool = True) -> None:
+    def __init__(self, in_channels: int, out_channels: int, modulated: bool = True, depthwise: bool = False) -> None:
         super().__init__()
         self.modulated = modulated
         self.strategy: DeformStrategy = "torch"
@@ -193,7 +222,12 @@ class DeformableConv(nn.Module):
         self.offset_pw = nn.Conv2d(in_channels, taps * (3 if modulated else 2), 1)
         nn.init.zeros_(self.offset_pw.weight)
         nn.init.zeros_(self.offset_pw.bias)
-        self.conv = nn.Conv2d(in_channels, out_channels, 3, padding=1)
+        if depthwise:
+            self.conv = nn.Conv2d(in_channels, in_channels, 3, padding=1, groups=in_channels)
+            self.pointwise: nn.Conv2d | None = nn.Conv2d(in_channels, out_channels, 1)
+        else:
+            self.conv = nn.Conv2d(in_channels, out_channels, 3, padding=1)
+            self.pointwise = None
         # Tracing hook for structured pruning (torch-pruning's DepGraph), off by default. DepGraph follows
         # autograd through every op, and the gather-based sampler is an op soup it cannot map to channels
         # (it never returns). With ``trace_as_plain_conv`` set, forward is just ``self.conv(x)``: the same
@@ -210,13 +244,16 @@ class DeformableConv(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.trace_as_plain_conv:  # pruning trace only, see __init__
-            return self.conv(x)
-        offset, mask = self.offsets_and_mask(x)
-        if self.strategy == "native":
-            return native_deform_conv2d(x, offset, self.conv.weight, self.conv.bias, mask)
-        if self.strategy == "grid_sample":
-            return deform_conv2d_grid_sample(x, offset, self.conv.weight, self.conv.bias, mask)
-        return deform_conv2d(x, offset, self.conv.weight, self.conv.bias, mask, 1, 1, 1)
+            out = self.conv(x)
+        else:
+            offset, mask = self.offsets_and_mask(x)
+            if self.strategy == "native":
+                out = native_deform_conv2d(x, offset, self.conv.weight, self.conv.bias, mask)
+            elif self.strategy == "grid_sample":
+                out = deform_conv2d_grid_sample(x, offset, self.conv.weight, self.conv.bias, mask)
+            else:
+                out = deform_conv2d(x, offset, self.conv.weight, self.conv.bias, mask, 1, 1, 1)
+        return out if self.pointwise is None else self.pointwise(out)
 
 
 def set_deform_strategy(model: nn.Module, strategy: DeformStrategy) -> nn.Module:

@@ -67,6 +67,7 @@ class FeatureNetConfig:
     deformable: bool = True
     modulated: bool = True
     deform_scale: int = 3  # index into widths: 3 = after the H/8 stage, 2 = after the H/4 stage
+    deform_depthwise: bool = False  # depthwise deformable 3x3 + pointwise 1x1 instead of a dense deformable 3x3
     pixel_head_channels: int = 64  # width of the cell-pixel keypoint head; 0 = no such head
 
     def __post_init__(self) -> None:
@@ -153,7 +154,8 @@ class FeatureNet(nn.Module):
         self.stages = nn.ModuleList(stages)
         if cfg.deformable:
             deform_channels = _channels_after(cfg, cfg.deform_scale)
-            self.deform = DeformableConv(deform_channels, deform_channels, modulated=cfg.modulated)
+            self.deform = DeformableConv(deform_channels, deform_channels, modulated=cfg.modulated,
+                                         depthwise=cfg.deform_depthwise)
             self.deform_bn = nn.BatchNorm2d(deform_channels)
             self.deform_act = make_activation(act)
         self.detector = nn.Sequential(

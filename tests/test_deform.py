@@ -85,10 +85,10 @@ def _run(model, x):
     return session.run(None, {"x": x.numpy()})[0]
 
 
-@pytest.mark.parametrize("modulated", [True, False])
-def test_training_portable_and_native_paths_agree(modulated):
+@pytest.mark.parametrize("modulated, depthwise", [(True, False), (False, False), (True, True)])
+def test_training_portable_and_native_paths_agree(modulated, depthwise):
     torch.manual_seed(2)
-    layer = DeformableConv(8, 16, modulated=modulated).eval()
+    layer = DeformableConv(8, 16, modulated=modulated, depthwise=depthwise).eval()
     torch.nn.init.normal_(layer.offset_pw.weight, std=1.5)  # offsets of several pixels, fractional
     torch.nn.init.normal_(layer.offset_pw.bias, std=4.0)
     x = torch.randn(1, 8, 12, 16)
@@ -105,6 +105,8 @@ def test_training_portable_and_native_paths_agree(modulated):
     assert portable.opset_import[0].version == 13
     assert not portable_ops & {"DeformConv", "GridSample", "GatherND"}
     assert "DeformConv" in native_ops
+    group = next(a.i for n in native.graph.node if n.op_type == "DeformConv" for a in n.attribute if a.name == "group")
+    assert group == (8 if depthwise else 1)
 
     assert np.abs(_run(portable, x) - training).max() <= 1e-4
     assert np.abs(_run(native, x) - training).max() <= 1e-4
@@ -158,3 +160,28 @@ def test_deformable_conv_grid_sample_strategy_is_the_same_layer():
     expected = layer(x)
     set_deform_strategy(layer, "grid_sample")
     assert torch.allclose(layer(x), expected, atol=1e-4)
+
+
+def test_depthwise_samplers_match_the_reference_and_each_other():
+    """A depthwise kernel [C, 1, 3, 3] is the dense loop reference with a block-diagonal kernel; the gather
+    sampler (training reference and portable export) and the grid_sample one give it, with equal gradients."""
+    from models.deform import deform_conv2d_grid_sample
+
+    x, offset, _, bias, mask = random_case(11, channels=4, out_channels=4)
+    weight = torch.randn(4, 1, 3, 3, generator=torch.Generator().manual_seed(5))
+    dense = torch.zeros(4, 4, 3, 3)
+    dense[range(4), range(4)] = weight[:, 0]
+    expected = reference_deform_conv(x.numpy(), offset.numpy(), dense.numpy(), bias.numpy(), mask.numpy())
+    gather = deform_conv2d(x, offset, weight, bias, mask)
+    assert np.abs(gather.numpy() - expected).max() < 1e-4
+    assert np.abs(deform_conv2d_grid_sample(x, offset, weight, bias, mask).numpy() - expected).max() < 1e-4
+
+    grads = []
+    for sampler in (lambda *a: deform_conv2d(*a, mask), lambda *a: deform_conv2d_grid_sample(*a, mask)):
+        inputs = [t.clone().requires_grad_(True) for t in (x, offset, weight, bias)]
+        sampler(*inputs).square().sum().backward()
+        grads.append([t.grad for t in inputs])
+    for name, a, b in zip(("x", "offset", "weight", "bias"), *grads):
+        assert torch.allclose(a, b, atol=1e-3, rtol=1e-4), name
+    with pytest.raises(ValueError, match="neither dense nor depthwise"):
+        deform_conv2d(x, offset, torch.randn(4, 2, 3, 3), bias, mask)

@@ -152,3 +152,22 @@ def test_bad_inputs_exit_2_with_one_line(teacher, tmp_path, capsys):
     expect_error(capsys, ["prune", "--checkpoint", checkpoint, "--target-macs", "10", "--size", "64x96", "-o", out],
                  "out of reach")
     assert not Path(out).exists()
+
+
+def test_a_depthwise_deformable_conv_prunes_as_one_unit_and_exports(images, tmp_path):
+    config = FeatureNetConfig(**{**SMALL.to_dict(), "deform_depthwise": True})
+    teacher = calibrated_random_featurenet(config, images)
+    student = prune_channels(teacher, 0.3, SIZE)
+    deform = student.deform
+    assert deform.conv.groups == deform.conv.in_channels == deform.conv.out_channels == deform.pointwise.in_channels == 48
+    assert deform.pointwise.out_channels == 48 and deform.offset_dw.groups == 48 and deform.offset_pw.out_channels == 27
+    path = save_checkpoint(student, tmp_path / "pruned-dw.safetensors")
+    loaded, info = load_checkpoint(path)
+    assert info.config["deform_depthwise"] is True
+    with torch.no_grad():
+        x = torch.from_numpy(images[:1])
+        assert torch.allclose(loaded(x)["logits"], student(x)["logits"], atol=1e-5)
+    for target in ("x86-cpu", "tx2"):  # DeformConv with group = C natively; the portable sampler on tx2
+        out = export_artefact(ExportOptions(target=target, output=tmp_path / target, checkpoint=path,
+                                            input_size=SIZE, precision="fp32"), log=lambda _m: None)
+        assert verify_artefact(out)["parity"]["keypoints_identical"] >= 0.99

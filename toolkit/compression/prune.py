@@ -11,7 +11,7 @@ nor are the layers whose output channels have a meaning (65-way detector, D-dim 
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import torch
@@ -44,6 +44,13 @@ def _slice_conv(conv: nn.Conv2d, keep_out: list[int] | None = None, keep_in: lis
     conv.weight = nn.Parameter(weight.clone())
 
 
+def _slice_depthwise_kernel(conv: nn.Conv2d, keep: list[int]) -> None:
+    conv.weight = nn.Parameter(conv.weight.data[keep].clone())
+    if conv.bias is not None:
+        conv.bias = nn.Parameter(conv.bias.data[keep].clone())
+    conv.in_channels = conv.out_channels = conv.groups = len(keep)
+
+
 def _slice_depthwise(conv: nn.Conv2d, bn: nn.BatchNorm2d, keep: list[int]) -> None:
     conv.weight = nn.Parameter(conv.weight.data[keep].clone())
     conv.in_channels = conv.out_channels = conv.groups = len(keep)
@@ -56,26 +63,35 @@ def _slice_depthwise(conv: nn.Conv2d, bn: nn.BatchNorm2d, keep: list[int]) -> No
 
 class DeformableConvPruner(tp.pruner.BasePruningFunc):
     """torch-pruning pruner for `DeformableConv`: input and output channels are independent (no intra-layer
-    coupling), and the offset/mask outputs of ``offset_pw`` are left whole."""
+    coupling), and the offset/mask outputs of ``offset_pw`` are left whole. A depthwise layer's outputs are
+    its ``pointwise`` conv's; its inputs are the depthwise kernel's channels and the pointwise conv's inputs."""
 
     TARGET_MODULES = (DeformableConv,)
 
     def prune_out_channels(self, layer: DeformableConv, idxs: Sequence[int]) -> DeformableConv:
-        _slice_conv(layer.conv, keep_out=_keep(layer.conv.out_channels, idxs))
+        mixer = layer.pointwise if layer.pointwise is not None else layer.conv
+        _slice_conv(mixer, keep_out=_keep(mixer.out_channels, idxs))
         return layer
 
     def prune_in_channels(self, layer: DeformableConv, idxs: Sequence[int]) -> DeformableConv:
         keep = _keep(layer.conv.in_channels, idxs)
-        _slice_conv(layer.conv, keep_in=keep)
+        if layer.pointwise is not None:
+            _slice_depthwise_kernel(layer.conv, keep)
+            _slice_conv(layer.pointwise, keep_in=keep)
+        else:
+            _slice_conv(layer.conv, keep_in=keep)
         _slice_depthwise(layer.offset_dw, layer.offset_bn, keep)
         _slice_conv(layer.offset_pw, keep_in=keep)
         return layer
 
     def get_out_channels(self, layer: DeformableConv) -> int:
-        return layer.conv.out_channels
+        return (layer.pointwise if layer.pointwise is not None else layer.conv).out_channels
 
     def get_in_channels(self, layer: DeformableConv) -> int:
         return layer.conv.in_channels
+
+
+PRUNER = DeformableConvPruner()
 
 
 def _set_trace_mode(model: nn.Module, enabled: bool) -> None:
@@ -119,7 +135,7 @@ def prune_channels(model: FeatureNet, ratio: float, size: tuple[int, int] = (64,
     try:
         graph = tp.DependencyGraph().build_dependency(
             pruned, torch.zeros(1, 1, *size),  # heads stay traced: their input channels must shrink
-            customized_pruners={DeformableConv: DeformableConvPruner()},
+            customized_pruners={DeformableConv: PRUNER},
         )
         # get_all_groups yields lazily; collect first so each group is pruned against the graph as built.
         groups = list(graph.get_all_groups(ignored_layers=ignored, root_module_types=(nn.Conv2d, DeformableConv)))
@@ -156,7 +172,7 @@ def config_of(model: FeatureNet) -> FeatureNetConfig:
     heads = {model.detector[0].pointwise.out_channels, model.descriptor[0].pointwise.out_channels}
     if len(heads) > 1:
         raise ToolkitError(f"pruned heads have unequal widths {sorted(heads)}; the config cannot express it")
-    if base.deformable and model.deform.conv.out_channels != model.deform.conv.in_channels:
+    if base.deformable and PRUNER.get_out_channels(model.deform) != model.deform.conv.in_channels:
         raise ToolkitError("pruned deformable conv has unequal input and output widths; the config cannot express it")
     pixel = 0
     if base.pixel_head_channels:
@@ -164,10 +180,7 @@ def config_of(model: FeatureNet) -> FeatureNetConfig:
         if len(pixel_widths) > 1:
             raise ToolkitError(f"pruned cell-pixel head has unequal widths {sorted(pixel_widths)}; the config cannot express it")
         pixel = pixel_widths.pop()
-    return FeatureNetConfig(widths=widths, blocks=list(base.blocks), head_channels=heads.pop(),
-                            descriptor_dim=base.descriptor_dim, activation=base.activation,
-                            deformable=base.deformable, modulated=base.modulated, deform_scale=base.deform_scale,
-                            pixel_head_channels=pixel)
+    return replace(base, widths=widths, head_channels=heads.pop(), pixel_head_channels=pixel)
 
 
 def rebuild(model: FeatureNet) -> FeatureNet:
@@ -194,9 +207,11 @@ def count_macs(model: nn.Module, size: tuple[int, int]) -> int:
 
     def deform_hook(module: DeformableConv, inputs, output: torch.Tensor) -> None:
         nonlocal total
-        kh, kw = module.conv.kernel_size
+        conv = module.conv
+        taps = conv.kernel_size[0] * conv.kernel_size[1]
         locations = output.shape[0] * output.shape[2] * output.shape[3]
-        total += locations * module.conv.in_channels * kh * kw * (module.conv.out_channels + 4)
+        kernel = conv.out_channels * (conv.in_channels // conv.groups)  # dense: Cout*C; depthwise: C (a pointwise conv follows)
+        total += locations * taps * (kernel + 4 * conv.in_channels)
 
     hooks = [m.register_forward_hook(conv_hook) for m in model.modules()
              if isinstance(m, nn.Conv2d) and m not in deform_kernels]

@@ -78,10 +78,15 @@ class ModuleCount:
     parameters: int
 
 
-def deform_macs(in_channels: int, out_channels: int, locations: int, modulated: bool) -> int:
-    """MACs of a 3x3 deformable conv on ``locations`` output pixels (conv + bilinear sampling + mask)."""
+def deform_macs(in_channels: int, out_channels: int, locations: int, modulated: bool,
+                kernel_in_channels: int | None = None) -> int:
+    """MACs of a 3x3 deformable conv on ``locations`` output pixels (conv + bilinear sampling + mask).
+
+    ``kernel_in_channels`` is the kernel's input width (``in_channels`` for a dense kernel, 1 for a
+    depthwise one): each output channel weighs that many sampled channels per tap."""
     sampled = in_channels * DEFORM_TAPS * locations
-    return out_channels * sampled + 4 * sampled + (sampled if modulated else 0)
+    per_output = (in_channels if kernel_in_channels is None else kernel_in_channels) * DEFORM_TAPS * locations
+    return out_channels * per_output + 4 * sampled + (sampled if modulated else 0)
 
 
 # ---------------------------------------------------------------- fvcore handlers (jit values in, MACs out)
@@ -129,7 +134,7 @@ def _batch_norm(inputs, outputs) -> int:
 def _deform(inputs, outputs) -> int:
     x_shape, weight_shape, out_shape = get_shape(inputs[0]), get_shape(inputs[2]), get_shape(outputs[0])
     modulated = inputs[4].type().kind() != "NoneType"
-    return x_shape[0] * deform_macs(x_shape[1], weight_shape[0], out_shape[2] * out_shape[3], modulated)
+    return x_shape[0] * deform_macs(x_shape[1], weight_shape[0], out_shape[2] * out_shape[3], modulated, weight_shape[1])
 
 
 ELEMENTWISE_ATEN = [
@@ -245,7 +250,7 @@ def _node_macs(node: onnx.NodeProto, shapes: dict[str, list[int]], out_elements:
     if op == "DeformConv":
         x, weight, out = shapes[node.input[0]], shapes[node.input[1]], shapes[node.output[0]]
         modulated = len(node.input) > 4 and node.input[4] != ""
-        return x[0] * deform_macs(x[1], weight[0], out[2] * out[3], modulated)
+        return x[0] * deform_macs(x[1], weight[0], out[2] * out[3], modulated, weight[1])
     if op == "MatMul":
         return out_elements * shapes[node.input[0]][-1]
     if op == "Gemm":
