@@ -1,85 +1,93 @@
 """`MonoVO` / `VisualOdometry`: a monocular visual odometry on top of any keypoint extractor.
 
-Each frame's keypoints are matched (mutual nearest neighbour on descriptors) to the previous frame's, which
-extends feature tracks. Every track remembers where it began (frame and image point) and, once triangulated,
-its 3D landmark. Per frame:
+States of a frame (``VOResult.status``), and what moves between them:
 
-- before a map exists: once the tracks that began at the reference frame have moved far enough, initialise
-  from a homography or an essential matrix, whichever scores better (`twoview.py`), and triangulate; the
-  first baseline sets the unit of length (``VOConfig.initial_baseline``);
-- once a map exists: PnP RANSAC against the tracked landmarks (constant-velocity prediction as the fallback
-  seed) gives the pose, which keeps one scale along the sequence. PnP outliers lose their landmark. Tracks
-  whose rays (first view vs this view) are far enough apart are triangulated; landmarks are re-triangulated
-  when their ray angle has doubled since. Every tracked frame's observations join a sliding window of
-  the last ``ba_window`` frames. A tracked frame becomes a keyframe when ``keyframe_max_gap`` frames have
-  passed or it sees fewer than ``keyframe_track_ratio`` of the last keyframe's landmarks; each keyframe
-  runs the local bundle adjustment, which refines the window's poses and points and culls points that stay
-  far off (`bundle.py`);
-- if PnP fails the frame is ``lost``: the pose is held, the tracks restart from this frame and the next
-  initialisation is scaled by the speed measured so far (status ``reinitialised``);
-- a frame that cannot be used (None, empty, of an unusable shape or dtype, NaN/inf: `check_frame`) is
-  ``skipped``: the pose is held, the result says why (``problem``), and tracking goes on with the next frame
-  as if the bad one had not arrived. A frame whose size contradicts the calibration (or, for a calibration
-  without a size, the first frame's size) raises `CalibrationError` and changes nothing: the intrinsics
-  would be wrong for it, and the caller decides (the CLI records it as skipped).
+- ``initialising``: no map yet. Keypoints are matched frame to frame into tracks (`tracks.py`); once the
+  tracks from the reference frame have moved far enough, a homography or an essential matrix (whichever
+  scores better, `twoview.py`) gives the relative pose, and the triangulated points become the first
+  landmarks, observed by two keyframes. The first baseline sets the unit (``VOConfig.initial_baseline``).
+- ``tracking``: the pose predicted by a constant-velocity model projects the local map (landmarks of the
+  reference keyframe and its covisible keyframes) into the frame; guided matching and a robust refinement
+  give the pose, with a wider search and then the previous frame as fallbacks (`tracking.py`;
+  ``VOResult.tracked_by`` says which). A frame becomes a keyframe when it tracks too small a share of the
+  reference keyframe's landmarks, or after ``keyframe_max_gap`` frames; a keyframe adds landmarks,
+  runs the local bundle adjustment over keyframes and culls bad landmarks (`mapping.py`).
+- ``lost``: every search failed (or the frame had too few features). The pose is held; the next frames
+  first try to relocalise against recent keyframes (`relocalise.py`) -> ``relocalised``, and after
+  ``relocalise_frames`` failed tries also start a fresh two-view initialisation, scaled by the speed
+  measured before the loss -> ``reinitialised`` (a new map; the old one is dropped).
+- ``skipped``: the frame could not be used (None, empty, an unusable shape or dtype, NaN/inf:
+  `check_frame`); the pose is held, ``problem`` says why, and the next frame is tracked as if it had not
+  arrived. A frame whose size contradicts the calibration (or, for a calibration without a size, the first
+  frame's size) raises `CalibrationError` and changes nothing.
 
 Poses are camera-to-world 4x4 matrices; the world is the first frame's camera (x right, y down, z forward),
-in units of the first baseline (monocular VO cannot observe metric scale).
+in units of the first baseline (monocular VO cannot observe metric scale). A frame's pose is stored
+relative to its reference keyframe, so frames reported earlier follow when bundle adjustment moves it.
 """
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import cv2
 import numpy as np
 
-from vo_runtime.bundle import SlidingWindow
 from vo_runtime.camera import Camera
 from vo_runtime.errors import CalibrationError, FrameError, VORuntimeError
 from vo_runtime.features import FeatureExtractor, Features, check_frame
-from vo_runtime.geometry import (camera_centre, invert_pose, make_pose, pose_from_rvec, ray_angles,
-                                 reprojection_errors, rvec_from_pose, triangulate)
-from vo_runtime.matching import match_mutual_nn
-from vo_runtime.tracks import Tracks
-from vo_runtime.twoview import relative_pose_hypotheses
+from vo_runtime.geometry import camera_centre, invert_pose, make_pose
+from vo_runtime.initialiser import Initialiser
+from vo_runtime.localmap import Keyframe, LocalMap
+from vo_runtime.mapping import (MappingConfig, cull_landmarks, local_bundle_adjustment, refresh_landmarks,
+                                 triangulate_new_landmarks)
+from vo_runtime.relocalise import relocalise
+from vo_runtime.tracking import RELOCALISATION, FrameData, TrackingSettings, guided_pose, track_frame
 
-INITIALISING, TRACKING, REINITIALISED, LOST = "initialising", "tracking", "reinitialised", "lost"
+INITIALISING, TRACKING, RELOCALISED, REINITIALISED, LOST = (
+    "initialising", "tracking", "relocalised", "reinitialised", "lost")
 SKIPPED = "skipped"  # the frame could not be used (see VOResult.problem); the pose is held
+TRACKED_STATES = (TRACKING, RELOCALISED, REINITIALISED)
 
 
 @dataclass
 class VOConfig:
-    """Tuning knobs. Pixel thresholds are in the frame's pixels; angles in degrees."""
+    """Tuning knobs. Pixel thresholds are in the detector's pixels (the frame's, unless the extractor resizes
+    frames to a smaller input: see `detector_pixel`); angles in degrees."""
 
     match_max_distance: float = 0.9      # L2 between unit descriptors (0..2)
     match_ratio: float | None = 0.9      # Lowe ratio on distances; None disables
     min_features: int = 30               # fewer detections: the frame is not used
     min_matches: int = 30                # correspondences an (re)initialisation needs
-    min_pnp_inliers: int = 20            # PnP needs this many inliers to be trusted
+    min_pnp_inliers: int = 20            # a pose needs this many inliers to be trusted
     ransac_threshold_px: float = 1.0     # essential-matrix RANSAC (Sampson distance)
-    pnp_threshold_px: float = 3.0        # PnP RANSAC reprojection error
+    pnp_threshold_px: float = 3.0        # pose inlier gate (reprojection error)
     triangulation_threshold_px: float = 3.0  # largest reprojection error of a new landmark in either view
     init_min_parallax_px: float = 15.0   # median track motion before a two-view initialisation is tried
     init_min_landmarks: int = 40         # triangulated points an initialisation must produce
     min_triangulation_deg: float = 1.0   # rays closer than this give no landmark
-    refresh_factor: float = 2.0          # re-triangulate a landmark when its ray angle grew by this factor
-    ba_window: int = 8                   # frames in the local bundle adjustment (0: none)
+    search_radius_px: float = 15.0       # guided matching around a landmark's predicted position
+    wide_search_radius_px: float = 45.0  # ... when the first search explains too little
+    local_keyframes: int = 8             # the reference keyframe and its best covisible ones form the local map
+    max_local_points: int = 1500         # landmarks projected per search (the most often found)
     keyframe_max_gap: int = 4            # a tracked frame becomes a keyframe at least this often ...
-    # ... or when it still sees fewer than this share of the last keyframe's landmarks. Off by default:
-    # measured with ORB (docs/vo.md), 0.3-0.5 helped KITTI 06 (ATE 0.57 -> 0.03-0.06 m) but made the
-    # scale of KITTI 07 drift (0.31 -> 1.6-5.0 m): without guided matching tracks decay fast, so the
-    # trigger fires at turns, where adjusting a short window moves the scale most.
-    keyframe_track_ratio: float = 0.0
+    keyframe_track_ratio: float = 0.8    # ... or when it tracks fewer than this share of the reference keyframe's landmarks
+    keyframe_min_tracked: int = 100      # ... or when it tracks fewer landmarks than this
+    keyframe_min_gap: int = 1            # ... but not sooner than this many frames after the last
+    relocalise_keyframes: int = 5        # recent keyframes a lost frame tries to relocalise against (0: never)
+    relocalise_frames: int = 3           # failed relocalisations before a fresh initialisation may start
     initial_baseline: float = 1.0        # length of the first baseline, in output units
+    mapping: MappingConfig = field(default_factory=MappingConfig)
 
     def __post_init__(self) -> None:
         if self.min_matches < 8 or self.min_pnp_inliers < 6:
             raise VORuntimeError("min_matches must be >= 8 and min_pnp_inliers >= 6")
         if self.initial_baseline <= 0:
             raise VORuntimeError("initial_baseline must be positive")
+        if not 0 < self.search_radius_px <= self.wide_search_radius_px:
+            raise VORuntimeError("search radii must be positive, the wide one no smaller")
 
 
 @dataclass
@@ -91,13 +99,15 @@ class VOResult:
     pose: np.ndarray
     status: str
     num_features: int
-    num_matches: int      # matched to the previous frame
-    num_inliers: int      # PnP or essential-matrix inliers
-    num_landmarks: int    # tracked keypoints of this frame that carry a landmark
+    num_matches: int      # guided (or frame-to-frame) matches
+    num_inliers: int      # pose (or two-view) inliers
+    num_landmarks: int    # keypoints of this frame that observe a landmark
     extract_ms: float
     track_ms: float
-    keyframe: bool = False  # ran the local bundle adjustment
+    keyframe: bool = False  # became a keyframe (adds landmarks, runs the local bundle adjustment)
     problem: str | None = None  # why a skipped frame could not be used
+    tracked_by: str | None = None  # local map | wide search | previous frame | relocalisation | two-view
+    mapping_ms: float = 0.0  # of track_ms: keyframe work (triangulation, bundle adjustment, culling)
 
 
 class MonoVO:
@@ -118,17 +128,24 @@ class MonoVO:
     def reset(self) -> None:
         """Forget the map and the trajectory; the next frame becomes the origin."""
         self.results: list[VOResult] = []
-        self._poses_cw: list[np.ndarray] = []  # world-to-camera, one per processed frame
-        self._previous: tuple[Features, Tracks] | None = None
-        self._reference = 0                    # frame the next initialisation measures from
-        self._initialised = False             # a scale has been fixed (first initialisation done)
-        self._mapped = False                  # landmarks exist to track against (false again after a loss)
-        self._speed: float | None = None       # world units per frame, from the last PnP step
-        self._window = SlidingWindow(self.config.ba_window)
-        self.init_model: str | None = None     # model of the last (re)initialisation: essential or homography
-        self._keyframe = -1                    # index of the last keyframe
-        self._keyframe_ids = np.zeros(0, np.int64)  # track ids of the landmarks that keyframe saw
+        self._poses_cw: list[np.ndarray] = []        # world-to-camera, one per processed frame
+        self._anchors: dict[int, list[tuple[int, np.ndarray]]] = {}  # keyframe -> (frame, frame-from-keyframe)
+        self.map: LocalMap | None = None
+        self._reference_kf = -1                      # keyframe the current frames are tracked from
+        self._local_ids = np.zeros(0, np.int64)      # landmarks of the local map (cached per reference)
+        self._previous: tuple[FrameData, np.ndarray] | None = None  # last tracked frame and its landmarks
+        self._last_tracked = -1
+        self._velocity = np.eye(4)                   # last inter-frame motion (world-to-camera increment)
+        self._speed: float | None = None             # world units per frame, for re-initialisation
+        self._lost_tries = 0
+        self._focal = self.camera.focal              # pixels per normalised unit, in the detector's pixels
+        self._initialiser = Initialiser(self.config, self._focal)
         self._frame_size: tuple[int, int] | None = None  # (height, width) of the frames, fixed by the first one
+
+    @property
+    def init_model(self) -> str | None:
+        """Model of the last (re)initialisation: essential or homography."""
+        return self._initialiser.model
 
     # ------------------------------------------------------------------ public
     def process(self, image: np.ndarray | None, timestamp: float | None = None) -> VOResult:
@@ -153,15 +170,16 @@ class MonoVO:
             return self.skip(str(exc), timestamp)
         if self._frame_size is None:
             self._frame_size = image.shape[:2]
+            self._focal = self.camera.focal / detector_pixel(self.extractor, *image.shape[:2])
+            self._initialiser.focal = self._focal
         extracted = time.perf_counter()
-        tracks = Tracks(index, self.camera.normalise(features.keypoints), np.asarray(features.keypoints, np.float64))
-        status, matches, inliers = self._track(index, features, tracks)
-        result = VOResult(
-            index=index, timestamp=timestamp, pose=invert_pose(self._poses_cw[index]), status=status,
-            num_features=len(features), num_matches=matches, num_inliers=inliers,
-            num_landmarks=int(np.count_nonzero(tracks.has_landmark)), keyframe=self._keyframe == index,
-            extract_ms=1e3 * (extracted - start), track_ms=1e3 * (time.perf_counter() - extracted),
-        )
+        result = VOResult(index=index, timestamp=timestamp, pose=np.eye(4), status=INITIALISING,
+                          num_features=len(features), num_matches=0, num_inliers=0, num_landmarks=0,
+                          extract_ms=1e3 * (extracted - start), track_ms=0.0)
+        self._poses_cw.append(self._poses_cw[-1].copy() if self._poses_cw else np.eye(4))
+        self._track(index, features, result)
+        result.pose = invert_pose(self._poses_cw[index])
+        result.track_ms = 1e3 * (time.perf_counter() - extracted)
         self.results.append(result)
         return result
 
@@ -183,196 +201,174 @@ class MonoVO:
             raise CalibrationError(f"frame is {width}x{height} but this sequence's frames are "
                                    f"{self._frame_size[1]}x{self._frame_size[0]} (the intrinsics fit one size)")
 
-    # ------------------------------------------------------------------ tracking
-    def _track(self, index: int, features: Features, tracks: Tracks) -> tuple[str, int, int]:
-        """Set this frame's pose (held until something better is known); return (status, matches, inliers)."""
+    # ------------------------------------------------------------------ states
+    def _track(self, index: int, features: Features, result: VOResult) -> None:
+        """Set this frame's pose (held until something better is known) and fill in ``result``."""
         cfg = self.config
-        self._poses_cw.append(self._poses_cw[-1].copy() if self._poses_cw else np.eye(4))
-        failed = LOST if self._initialised else INITIALISING
-        if self._previous is None:
-            self._reference = index
-            self._previous = (features, tracks)
-            return INITIALISING, 0, 0
+        mapped = self.map is not None
+        result.status = LOST if (mapped or self._speed is not None) else INITIALISING
         if len(features) < cfg.min_features:
-            return failed, 0, 0  # skip the frame: the next one is matched to the previous good frame
-        prev_features, prev_tracks = self._previous
-        self._previous = (features, tracks)
-        matches = match_mutual_nn(prev_features.descriptors, features.descriptors, cfg.match_max_distance,
-                                  cfg.match_ratio)
-        tracks.extend(prev_tracks, matches)
-        if self._mapped:
-            inliers = self._track_pnp(index, tracks)
-            if inliers is not None:
-                self._triangulate(index, tracks)
-                # Every tracked frame's observations enter the window (more views per point steadied the
-                # scale on KITTI); keyframes decide when the window is adjusted and culled.
-                self._window_add(index, tracks.ids, tracks.points, tracks.landmarks, tracks.has_landmark)
-                if self._needs_keyframe(index, tracks):
-                    self._local_bundle_adjustment(tracks)
-                    self._mark_keyframe(index, tracks)
-                return TRACKING, len(matches), inliers
-            # Lost: hold the pose and measure the next initialisation from here.
-            self._mapped = False
-            self._window.clear()
-            self._reference = index
-            tracks.restart(np.arange(len(tracks.points)), index)
-            return LOST, len(matches), 0
-        count = self._initialise(index, tracks)
-        if count is None:
-            return failed, len(matches), 0
-        status = REINITIALISED if self._initialised else TRACKING
-        self._initialised = self._mapped = True
-        return status, len(matches), count
-
-    def _track_pnp(self, index: int, tracks: Tracks) -> int | None:
-        """PnP against the tracked landmarks; on success set this frame's pose and return the inlier count."""
-        cfg = self.config
-        rows = np.flatnonzero(tracks.has_landmark)
-        if len(rows) < cfg.min_pnp_inliers:
-            return None
-        world = tracks.landmarks[rows]
-        image = tracks.points[rows]
-        threshold = cfg.pnp_threshold_px / self.camera.focal
-        # No extrinsic guess for RANSAC: OpenCV 5.0's RANSAC with SOLVEPNP_ITERATIVE + useExtrinsicGuess
-        # returned the guess with every point flagged inlier (median error ~90 px on noise-free data).
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            world, image, np.eye(3), None, iterationsCount=200, reprojectionError=threshold, confidence=0.999,
-            flags=cv2.SOLVEPNP_SQPNP,
-        )
-        if not ok or inl is None or len(inl) < cfg.min_pnp_inliers:
-            # RANSAC found no consensus (few or noisy landmarks): start from the constant-velocity
-            # prediction instead, keep what it explains within twice the threshold, refine, and re-gate.
-            last = self._poses_cw[index - 1]
-            before = self._poses_cw[index - 2] if index >= 2 else last
-            rvec, tvec = rvec_from_pose(last @ invert_pose(before) @ last)
-            inl = np.flatnonzero(reprojection_errors(world, image, rvec, tvec) < 2 * threshold)
-            if len(inl) < cfg.min_pnp_inliers:
-                return None
-            rvec, tvec = cv2.solvePnPRefineLM(world[inl], image[inl], np.eye(3), None, rvec, tvec)
-            inl = np.flatnonzero(reprojection_errors(world, image, rvec, tvec) < threshold)
-            if len(inl) < cfg.min_pnp_inliers:
-                return None
-        inl = inl.ravel()
-        rvec, tvec = cv2.solvePnPRefineLM(world[inl], image[inl], np.eye(3), None, rvec, tvec)
-        pose = pose_from_rvec(rvec, tvec)
-        self._speed = float(np.linalg.norm(camera_centre(pose) - camera_centre(self._poses_cw[index - 1])))
-        self._poses_cw[index] = pose
-        outliers = np.setdiff1d(rows, rows[inl])
-        tracks.landmarks[outliers] = np.nan
-        tracks.angles[outliers] = 0.0
-        return len(inl)
-
-    def _initialise(self, index: int, tracks: Tracks) -> int | None:
-        """Two-view initialisation from the reference frame. Returns the inlier count, or None (not yet)."""
-        cfg = self.config
-        rows = np.flatnonzero(tracks.first_frame == self._reference)
-        if len(rows) < cfg.min_matches:
-            # Too few tracks survive from the reference: measure from this frame instead.
-            self._poses_cw[index] = self._poses_cw[self._reference].copy()
-            self._reference = index
-            tracks.restart(np.arange(len(tracks.points)), index)
-            return None
-        motion = np.median(np.linalg.norm(tracks.pixels[rows] - tracks.first_pixels[rows], axis=1))
-        # Tracks from the reference die off, and the survivors are the slow, distant points: when few are
-        # left, try with less motion rather than lose the reference (the landmark checks below still apply).
-        dying = len(rows) < 3 * cfg.min_matches
-        if motion < (cfg.init_min_parallax_px / 3 if dying else cfg.init_min_parallax_px):
-            return None
-        pts_ref, pts_cur = tracks.first_points[rows], tracks.points[rows]
-        if self._initialised:  # re-initialisation after a loss: keep the speed measured before it
-            scale = (self._speed or cfg.initial_baseline) * (index - self._reference)
-        else:
-            scale = cfg.initial_baseline
-        ref_pose = self._poses_cw[self._reference]
-        # Keep the hypothesis that triangulates the most points (in front, small error, enough parallax).
-        best = []
-        for hypothesis in relative_pose_hypotheses(pts_ref, pts_cur, cfg.ransac_threshold_px / self.camera.focal):
-            if np.count_nonzero(hypothesis.inliers) < cfg.init_min_landmarks:
-                continue
-            pose = make_pose(hypothesis.rotation, scale * hypothesis.translation) @ ref_pose
-            inliers = rows[hypothesis.inliers]
-            world, error = triangulate(ref_pose, pose, pts_ref[hypothesis.inliers], pts_cur[hypothesis.inliers])
-            angles = ray_angles(ref_pose, pose, tracks.first_points[inliers], tracks.points[inliers])
-            good = (error < cfg.triangulation_threshold_px / self.camera.focal) & (angles >= cfg.min_triangulation_deg)
-            best.append((int(np.count_nonzero(good)), hypothesis.model, pose, inliers, world, angles, good))
-        best.sort(key=lambda item: -item[0])
-        if not best or best[0][0] < cfg.init_min_landmarks:
-            return None
-        if len(best) > 1 and best[1][0] > 0.75 * best[0][0]:
-            return None  # ambiguous homography decomposition: wait for more motion
-        _, self.init_model, pose, inliers, world, angles, good = best[0]
-        self._poses_cw[index] = pose
-        # Tracks that began after the reference frame began at a held (unknown) pose: restart them here.
-        tracks.restart(np.flatnonzero(tracks.first_frame != self._reference), index)
-        tracks.landmarks[inliers[good]] = world[good]
-        tracks.angles[inliers[good]] = angles[good]
-        # The window starts with the two views of the initialisation (both held fixed in adjustment).
-        self._window.clear()
-        seen = tracks.has_landmark
-        self._window_add(self._reference, tracks.ids, tracks.first_points, tracks.landmarks, seen)
-        self._window_add(index, tracks.ids, tracks.points, tracks.landmarks, seen)
-        self._mark_keyframe(index, tracks)
-        self._speed = scale / (index - self._reference)
-        return len(inliers)
-
-    def _needs_keyframe(self, index: int, tracks: Tracks) -> bool:
-        """ORB-SLAM's two reasons, simplified: the view has moved on, or too long since the last keyframe."""
-        cfg = self.config
-        if index - self._keyframe >= cfg.keyframe_max_gap:
-            return True
-        still_seen = np.isin(tracks.ids[tracks.has_landmark], self._keyframe_ids).sum()
-        return still_seen < cfg.keyframe_track_ratio * len(self._keyframe_ids)
-
-    def _mark_keyframe(self, index: int, tracks: Tracks) -> None:
-        self._keyframe = index
-        self._keyframe_ids = tracks.ids[tracks.has_landmark].copy()
-
-    def _window_add(self, index: int, ids: np.ndarray, points: np.ndarray, landmarks: np.ndarray,
-                    rows: np.ndarray) -> None:
-        if self.config.ba_window:
-            self._window.add(index, ids[rows], points[rows], landmarks[rows])
-
-    def _local_bundle_adjustment(self, tracks: Tracks) -> None:
-        """Refine the window's poses and points; update this frame's landmarks and drop the bad ones."""
-        cfg = self.config
-        if not cfg.ba_window:
+            return  # the next frame is matched to the last good one
+        pixels = np.asarray(features.keypoints, np.float64)
+        frame = FrameData.build(self.camera.normalise(pixels), pixels, features.descriptors)
+        if mapped and self._last_tracked >= 0:
+            outcome = track_frame(self.map, self._local_ids, self._predict(index), frame, self._previous,
+                                  self._settings(frame))
+            if outcome is not None:
+                self._accept(index, frame, outcome, TRACKING, result)
+                return
+            self._last_tracked = -1  # lost: relocalise from the next frame on
+            self._lost_tries = 0
+            self._initialiser.restart(index, frame, features)
             return
-        seen = np.flatnonzero(tracks.has_landmark)
-        outcome = self._window.adjust(self._poses_cw, self.camera.focal, gate_px=4 * cfg.pnp_threshold_px,
-                                      cull_px=cfg.triangulation_threshold_px,
-                                      current=(tracks.ids[seen], tracks.landmarks[seen]))
+        if mapped and cfg.relocalise_keyframes > 0:
+            outcome = self._relocalise(frame)
+            if outcome is not None:
+                self._accept(index, frame, outcome, RELOCALISED, result)
+                return
+            self._lost_tries += 1
+        matches = self._initialiser.add(index, frame, features)
+        result.num_matches = matches
+        if mapped and cfg.relocalise_keyframes > 0 and self._lost_tries < cfg.relocalise_frames:
+            return  # give relocalisation a few frames before a new map (and a guessed scale) replaces the old
+        outcome = self._initialiser.try_initialise(index, self._poses_cw, self._speed)
         if outcome is None:
             return
-        poses, points, culled = outcome
-        for frame, pose in poses.items():
-            self._poses_cw[frame] = pose
-            if frame < len(self.results):  # frames already reported get the refined pose too
-                self.results[frame].pose = invert_pose(pose)
-        for row in seen:
-            landmark_id = int(tracks.ids[row])
-            if landmark_id in points:
-                tracks.landmarks[row] = points[landmark_id]
-            elif landmark_id in culled:
-                tracks.landmarks[row] = np.nan
-                tracks.angles[row] = 0.0
+        self._start_map(index, outcome, result)
 
-    def _triangulate(self, index: int, tracks: Tracks) -> None:
-        """Triangulate tracks whose rays are far enough apart, and refresh landmarks whose angle doubled."""
+    def _predict(self, index: int) -> np.ndarray:
+        """Constant velocity: the last motion repeated once per frame since the last tracked frame."""
+        pose = self._poses_cw[self._last_tracked]
+        for _ in range(index - self._last_tracked):
+            pose = self._velocity @ pose
+        return pose
+
+    def _settings(self, frame: FrameData) -> TrackingSettings:
         cfg = self.config
-        candidates = np.flatnonzero(tracks.first_frame < index)
-        if len(candidates) == 0:
-            return
-        pose = self._poses_cw[index]
-        first_poses = np.stack([self._poses_cw[f] for f in tracks.first_frame[candidates]])
-        angles = ray_angles(first_poses, pose, tracks.first_points[candidates], tracks.points[candidates])
-        due = (angles >= cfg.min_triangulation_deg) & (angles >= cfg.refresh_factor * tracks.angles[candidates])
-        for first in np.unique(tracks.first_frame[candidates[due]]):
-            pick = due & (tracks.first_frame[candidates] == first)
-            rows = candidates[pick]
-            world, error = triangulate(self._poses_cw[first], pose, tracks.first_points[rows], tracks.points[rows])
-            good = error < cfg.triangulation_threshold_px / self.camera.focal
-            tracks.landmarks[rows[good]] = world[good]
-            tracks.angles[rows[good]] = angles[pick][good]
+        low, high = frame.points.min(axis=0), frame.points.max(axis=0)
+        return TrackingSettings(self._focal, (low[0], high[0], low[1], high[1]), cfg.search_radius_px,
+                                cfg.wide_search_radius_px, cfg.pnp_threshold_px, cfg.min_pnp_inliers,
+                                cfg.match_max_distance, cfg.match_ratio, cfg.max_local_points)
+
+    def _relocalise(self, frame: FrameData):
+        cfg = self.config
+        found = relocalise(self.map, frame.points, frame.descriptors, cfg.relocalise_keyframes,
+                           cfg.pnp_threshold_px / self._focal, cfg.min_pnp_inliers, cfg.match_max_distance,
+                           cfg.match_ratio)
+        if found is None:
+            return None
+        pose, number = found
+        self._set_reference(number)
+        outcome = guided_pose(self.map, self._local_ids, pose, frame, self._settings(frame), cfg.search_radius_px)
+        if outcome is not None:
+            outcome.source = RELOCALISATION
+        return outcome
+
+    def _accept(self, index: int, frame: FrameData, outcome, status: str, result: VOResult) -> None:
+        """A tracked frame: store its pose, the motion model, and make it a keyframe if needed."""
+        pose = outcome.pose_cw
+        if self._last_tracked >= 0:
+            gap = index - self._last_tracked
+            step = pose @ invert_pose(self._poses_cw[self._last_tracked])
+            self._velocity = step if gap == 1 else self._velocity
+            self._speed = float(np.linalg.norm(camera_centre(pose) - camera_centre(self._poses_cw[self._last_tracked]))) / gap
+        else:
+            self._velocity = np.eye(4)  # after a relocalisation the motion is unknown
+        self._poses_cw[index] = pose
+        self._last_tracked = index
+        self._previous = (frame, outcome.landmark)
+        result.status, result.tracked_by = status, outcome.source
+        result.num_matches, result.num_inliers = outcome.matches, outcome.inliers
+        result.num_landmarks = int(np.count_nonzero(outcome.landmark >= 0))
+        if self._needs_keyframe(index, result.num_landmarks) or status == RELOCALISED:
+            start = time.perf_counter()
+            self._insert_keyframe(index, frame, outcome.landmark)
+            result.keyframe = True
+            result.mapping_ms = 1e3 * (time.perf_counter() - start)
+        else:
+            keyframe = self.map.keyframes[self._reference_kf]
+            self._anchors[self._reference_kf].append((index, pose @ invert_pose(keyframe.pose_cw)))
+
+    def _needs_keyframe(self, index: int, tracked: int) -> bool:
+        """ORB-SLAM's two reasons, simplified: the view has moved on, or too long since the last keyframe."""
+        cfg = self.config
+        reference = self.map.keyframes[self._reference_kf]
+        since = index - self.map.keyframes[-1].frame
+        if since >= cfg.keyframe_max_gap:
+            return True
+        if since >= cfg.keyframe_min_gap and tracked < cfg.keyframe_min_tracked:
+            return True  # tracking is thinning out: new landmarks now, before it is lost
+        # The reference keyframe's established landmarks (seen by 3+ keyframes; by 2 while the map is young):
+        # a frame that tracks too small a share of them sees a view the map does not cover well.
+        ids = reference.landmark_ids()
+        established = np.count_nonzero(self.map.observation_counts(ids) >= min(3, len(self.map.keyframes)))
+        return since >= cfg.keyframe_min_gap and tracked < cfg.keyframe_track_ratio * established
+
+    def _insert_keyframe(self, index: int, frame: FrameData, landmark: np.ndarray) -> None:
+        cfg, focal = self.config, self._focal
+        keyframe = Keyframe(index, self._poses_cw[index].copy(), frame.points, frame.pixels, frame.descriptors,
+                            landmark.copy())
+        number = self.map.add_keyframe(keyframe)
+        self._anchors[number] = [(index, np.eye(4))]
+        refresh_landmarks(self.map, number, cfg.mapping, focal)
+        triangulate_new_landmarks(self.map, number, cfg.mapping, focal, cfg.match_max_distance, cfg.match_ratio)
+        for moved in local_bundle_adjustment(self.map, number, cfg.mapping, focal):
+            self._follow_keyframe(moved)
+        cull_landmarks(self.map, number, cfg.mapping)
+        self._previous = (frame, keyframe.landmark)  # the adjustment may have dropped observations
+        self._set_reference(number)
+
+    def _follow_keyframe(self, number: int) -> None:
+        """Frames anchored to a keyframe the adjustment moved move with it (results included)."""
+        keyframe_pose = self.map.keyframes[number].pose_cw
+        for frame, relative in self._anchors.get(number, []):
+            self._poses_cw[frame] = relative @ keyframe_pose
+            if frame < len(self.results):
+                self.results[frame].pose = invert_pose(self._poses_cw[frame])
+
+    def _set_reference(self, number: int) -> None:
+        self._reference_kf = number
+        local = [number] + self.map.covisible(number, self.config.local_keyframes - 1)
+        self._local_ids = self.map.landmarks_of(local)
+
+    def _start_map(self, index: int, outcome, result: VOResult) -> None:
+        """A (re)initialisation succeeded: a new map of two keyframes."""
+        reinitialised = self.map is not None or self._speed is not None
+        self.map = LocalMap(outcome.current.descriptors.shape[1])
+        self._anchors = {}
+        reference, current = outcome.reference, outcome.current
+        for frame_index, data in ((outcome.reference_index, reference), (index, current)):
+            keyframe = Keyframe(frame_index, self._poses_cw[frame_index].copy(), data.points, data.pixels,
+                                data.descriptors, np.full(len(data.points), -1, np.int64))
+            self._anchors[self.map.add_keyframe(keyframe)] = [(frame_index, np.eye(4))]
+        self.map.add_landmarks(outcome.world, [(0, outcome.reference_rows), (1, outcome.current_rows)], outcome.angles)
+        self._set_reference(1)
+        self._previous = (current, self.map.keyframes[1].landmark)
+        self._last_tracked = index
+        self._velocity = per_frame_motion(self._poses_cw[index] @ invert_pose(self._poses_cw[outcome.reference_index]),
+                                          index - outcome.reference_index)
+        self._speed = outcome.speed
+        result.status = REINITIALISED if reinitialised else TRACKING
+        result.tracked_by = "two-view"
+        result.keyframe = True
+        result.num_inliers = outcome.inliers
+        result.num_landmarks = len(outcome.world)
+
+
+def detector_pixel(extractor: object, height: int, width: int) -> float:
+    """Frame pixels per detector pixel: an artefact that resizes frames to its input (``width`` x ``height``
+    attributes) localises keypoints to its own pixels, so pixel thresholds are meant in those; 1 otherwise."""
+    input_width, input_height = getattr(extractor, "width", None), getattr(extractor, "height", None)
+    if not isinstance(input_width, int) or not isinstance(input_height, int) or input_width <= 0 or input_height <= 0:
+        return 1.0
+    return max(1.0, width / input_width, height / input_height)
+
+
+def per_frame_motion(motion: np.ndarray, frames: int) -> np.ndarray:
+    """The constant per-frame motion that adds up to ``motion`` over ``frames`` frames (rotation angle and
+    translation divided evenly; close enough to seed the motion model)."""
+    rvec = cv2.Rodrigues(motion[:3, :3])[0] / frames
+    return make_pose(cv2.Rodrigues(rvec)[0], motion[:3, 3] / frames)
 
 
 class VisualOdometry(MonoVO):

@@ -1,0 +1,151 @@
+"""The map `MonoVO` tracks against: keyframes and the landmarks they observe.
+
+A keyframe keeps its pose, its keypoints (pixels and normalised), their descriptors and, per keypoint, the
+landmark it observes (-1 where none). A landmark keeps its position, a representative descriptor (the
+medoid of its last few keyframe observations, so it stays matchable from several viewpoints), the
+keyframes that observe it, and two counters for culling: how often it was predicted inside a tracked
+frame (``visible``) and how often it was matched there (``found``).
+
+Landmark ids are rows of the arrays here; dead landmarks keep their row (``alive`` is False) so ids stay
+valid. Arrays grow by doubling, so adding a keyframe's landmarks does not copy the whole map each time.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+DESCRIPTOR_OBSERVATIONS = 4  # observations the representative descriptor is chosen from (the latest ones)
+
+
+@dataclass
+class Keyframe:
+    frame: int               # index of the frame it was made from
+    pose_cw: np.ndarray      # world-to-camera 4x4
+    points: np.ndarray       # normalised image points [N, 2]
+    pixels: np.ndarray       # [N, 2]
+    descriptors: np.ndarray  # [N, D], unit rows
+    landmark: np.ndarray     # [N] landmark id observed by each keypoint, -1 where none
+
+    def landmark_ids(self) -> np.ndarray:
+        return self.landmark[self.landmark >= 0]
+
+
+class LocalMap:
+    """Keyframes and landmarks; all bookkeeping between them goes through these methods."""
+
+    def __init__(self, descriptor_size: int) -> None:
+        self.keyframes: list[Keyframe] = []
+        self.size = 0
+        capacity = 1024
+        self.positions = np.zeros((capacity, 3))
+        self.descriptors = np.zeros((capacity, descriptor_size), np.float32)
+        self.alive = np.zeros(capacity, bool)
+        self.visible = np.zeros(capacity, np.int64)
+        self.found = np.zeros(capacity, np.int64)
+        self.created = np.zeros(capacity, np.int64)   # keyframe that created it
+        self.angles = np.zeros(capacity)              # ray angle (degrees) of the views it was triangulated from
+        self.observations: list[dict[int, int]] = []  # per landmark: keyframe -> keypoint row
+
+    # ------------------------------------------------------------------ building
+    def add_keyframe(self, keyframe: Keyframe) -> int:
+        """Append a keyframe whose ``landmark`` column names landmarks it matched; record those observations."""
+        self.keyframes.append(keyframe)
+        number = len(self.keyframes) - 1
+        rows = np.flatnonzero(keyframe.landmark >= 0)
+        ids = keyframe.landmark[rows]
+        alive = self.alive[ids]
+        keyframe.landmark[rows[~alive]] = -1
+        for landmark, row in zip(ids[alive].tolist(), rows[alive].tolist()):
+            self.observations[landmark][number] = row
+        self._update_descriptors(ids[alive])
+        return number
+
+    def add_landmarks(self, positions: np.ndarray, seen_by: list[tuple[int, np.ndarray]],
+                      angles: np.ndarray) -> np.ndarray:
+        """New landmarks at ``positions``, triangulated from rays ``angles`` (degrees) apart and observed by
+        each (keyframe, keypoint rows) in ``seen_by``. The last keyframe listed is the creating one. Returns
+        their ids."""
+        count = len(positions)
+        self._reserve(self.size + count)
+        ids = np.arange(self.size, self.size + count)
+        self.size += count
+        self.positions[ids] = positions
+        self.angles[ids] = angles
+        self.alive[ids] = True
+        self.visible[ids] = self.found[ids] = 1
+        self.created[ids] = seen_by[-1][0]
+        self.observations.extend({} for _ in range(count))
+        for number, rows in seen_by:
+            self.keyframes[number].landmark[rows] = ids
+            for landmark, row in zip(ids.tolist(), rows.tolist()):
+                self.observations[landmark][number] = row
+        self._update_descriptors(ids)
+        return ids
+
+    def remove_observations(self, landmarks: np.ndarray, keyframes: np.ndarray) -> None:
+        """Drop the observation of each landmark in the matching keyframe; a landmark left with fewer than
+        two observations cannot be triangulated and dies."""
+        for landmark, number in zip(landmarks.tolist(), keyframes.tolist()):
+            row = self.observations[landmark].pop(number, None)
+            if row is not None:
+                self.keyframes[number].landmark[row] = -1
+            if len(self.observations[landmark]) < 2:
+                self.kill(np.array([landmark]))
+
+    def kill(self, landmarks: np.ndarray) -> None:
+        for landmark in np.asarray(landmarks).tolist():
+            if not self.alive[landmark]:
+                continue
+            self.alive[landmark] = False
+            for number, row in self.observations[landmark].items():
+                self.keyframes[number].landmark[row] = -1
+            self.observations[landmark] = {}
+
+    # ------------------------------------------------------------------ queries
+    def covisible(self, number: int, count: int, recent: int = 30) -> list[int]:
+        """Up to ``count`` keyframes sharing the most landmarks with keyframe ``number`` (searched among the
+        ``recent`` keyframes before and after it), best first."""
+        own = self.keyframes[number].landmark_ids()
+        lo, hi = max(0, number - recent), min(len(self.keyframes), number + recent + 1)
+        shared = [(int(np.isin(self.keyframes[k].landmark_ids(), own, assume_unique=False).sum()), k)
+                  for k in range(lo, hi) if k != number]
+        shared = [item for item in shared if item[0] > 0]
+        shared.sort(key=lambda item: (-item[0], -item[1]))
+        return [k for _, k in shared[:count]]
+
+    def landmarks_of(self, keyframes: list[int]) -> np.ndarray:
+        """Unique alive landmark ids observed by any of ``keyframes``."""
+        if not keyframes:
+            return np.zeros(0, np.int64)
+        ids = np.unique(np.concatenate([self.keyframes[k].landmark_ids() for k in keyframes]))
+        return ids[self.alive[ids]]
+
+    def observation_counts(self, landmarks: np.ndarray) -> np.ndarray:
+        return np.array([len(self.observations[i]) for i in landmarks.tolist()], np.int64)
+
+    # ------------------------------------------------------------------ internals
+    def _reserve(self, size: int) -> None:
+        capacity = len(self.alive)
+        if size <= capacity:
+            return
+        while capacity < size:
+            capacity *= 2
+        for name in ("positions", "descriptors", "alive", "visible", "found", "created", "angles"):
+            old = getattr(self, name)
+            grown = np.zeros((capacity,) + old.shape[1:], old.dtype)
+            grown[: len(old)] = old
+            setattr(self, name, grown)
+
+    def _update_descriptors(self, landmarks: np.ndarray) -> None:
+        """Representative descriptor: the medoid (least summed distance to the others) of the landmark's
+        latest keyframe observations, as a binary or learnt descriptor has no meaningful mean."""
+        for landmark in np.asarray(landmarks).tolist():
+            seen = list(self.observations[landmark].items())[-DESCRIPTOR_OBSERVATIONS:]
+            if not seen:
+                continue
+            stack = np.stack([self.keyframes[k].descriptors[row] for k, row in seen])
+            if len(stack) > 2:
+                sim = stack @ stack.T
+                stack = stack[[int(np.argmax(sim.sum(axis=1)))]]  # unit rows: max summed similarity
+            self.descriptors[landmark] = stack[-1]

@@ -1,0 +1,137 @@
+"""Tracking one frame against the local map, with guided matching and fallbacks.
+
+The pose predicted by the motion model places each local landmark in the frame; it is matched to a
+keypoint within a small radius of that spot (`match_by_projection`), and the pose is refined on those
+matches (`refine_pose`). When that explains too few landmarks the search widens (a bad prediction: a
+sudden turn), then falls back to the previous frame (descriptor matching to its keypoints that carry
+landmarks, PnP RANSAC, and a guided pass from that pose). Only when all fail is the frame lost.
+
+Everything works in the normalised image plane (undistorted), so radii are pixels / focal and no
+distortion model is needed to project.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from vo_runtime.localmap import LocalMap
+from vo_runtime.matching import match_by_projection, match_mutual_nn
+from vo_runtime.pose import ransac_pose, refine_pose
+
+LOCAL_MAP, WIDE_SEARCH, PREVIOUS_FRAME, RELOCALISATION = "local map", "wide search", "previous frame", "relocalisation"
+
+
+@dataclass
+class FrameData:
+    """One frame's keypoints as tracking needs them."""
+
+    points: np.ndarray       # normalised [N, 2]
+    pixels: np.ndarray       # [N, 2]
+    descriptors: np.ndarray  # [N, D]
+    tree: cKDTree            # over ``points``
+
+    @classmethod
+    def build(cls, points: np.ndarray, pixels: np.ndarray, descriptors: np.ndarray) -> "FrameData":
+        return cls(points, pixels, descriptors, cKDTree(points))
+
+
+@dataclass
+class TrackOutcome:
+    pose_cw: np.ndarray
+    landmark: np.ndarray  # [N] landmark id matched by each keypoint (pose inliers only), -1 where none
+    matches: int          # guided matches before the pose gate
+    inliers: int
+    source: str           # which search found the pose: LOCAL_MAP, WIDE_SEARCH, PREVIOUS_FRAME, RELOCALISATION
+
+
+@dataclass
+class TrackingSettings:
+    focal: float
+    bounds: tuple[float, float, float, float]  # normalised image extent: x min, x max, y min, y max
+    radius_px: float
+    wide_radius_px: float
+    threshold_px: float
+    min_inliers: int
+    max_distance: float
+    ratio: float | None
+    max_points: int
+
+
+def in_view(local_map: LocalMap, ids: np.ndarray, pose_cw: np.ndarray,
+            bounds: tuple[float, float, float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Landmarks of ``ids`` in front of the camera and inside the image, and their projections (normalised)."""
+    cam = local_map.positions[ids] @ pose_cw[:3, :3].T + pose_cw[:3, 3]
+    front = cam[:, 2] > 1e-6
+    ids, cam = ids[front], cam[front]
+    projected = cam[:, :2] / cam[:, 2:3]
+    x0, x1, y0, y1 = bounds
+    inside = (projected[:, 0] >= x0) & (projected[:, 0] <= x1) & (projected[:, 1] >= y0) & (projected[:, 1] <= y1)
+    return ids[inside], projected[inside]
+
+
+def guided_pose(local_map: LocalMap, ids: np.ndarray, pose_cw: np.ndarray, frame: FrameData,
+                settings: TrackingSettings, radius_px: float, robust: bool = False) -> TrackOutcome | None:
+    """Guided matching of ``ids`` around their projections from ``pose_cw``, then the pose refined on them
+    (``robust``: PnP RANSAC first, for a prediction that may be far off)."""
+    visible, projected = in_view(local_map, ids, pose_cw, settings.bounds)
+    if len(visible) > settings.max_points:  # bound the work: the most often found landmarks first
+        keep = np.argsort(-local_map.found[visible], kind="stable")[: settings.max_points]
+        visible, projected = visible[keep], projected[keep]
+    pairs = match_by_projection(projected, local_map.descriptors[visible], frame.points, frame.descriptors,
+                                radius_px / settings.focal, settings.max_distance, settings.ratio, tree=frame.tree)
+    if len(pairs) < settings.min_inliers:
+        return None
+    world, image = local_map.positions[visible[pairs[:, 0]]], frame.points[pairs[:, 1]]
+    threshold = settings.threshold_px / settings.focal
+    fit = refine_pose(world, image, pose_cw, threshold, settings.min_inliers)
+    if robust and fit is None:
+        fit = ransac_pose(world, image, threshold, settings.min_inliers)
+    if fit is None:
+        return None
+    pose, inliers = fit
+    landmark = np.full(len(frame.points), -1, np.int64)
+    landmark[pairs[inliers, 1]] = visible[pairs[inliers, 0]]
+    return TrackOutcome(pose, landmark, len(pairs), int(np.count_nonzero(inliers)), LOCAL_MAP)
+
+
+def track_frame(local_map: LocalMap, ids: np.ndarray, predicted_cw: np.ndarray, frame: FrameData,
+                previous: tuple[FrameData, np.ndarray] | None, settings: TrackingSettings) -> TrackOutcome | None:
+    """Local map tracking with its fallbacks (see the module docstring); ``previous`` is the last tracked
+    frame and its landmark column. Counts every landmark predicted in view as ``visible``."""
+    outcome = guided_pose(local_map, ids, predicted_cw, frame, settings, settings.radius_px)
+    if outcome is None:
+        outcome = guided_pose(local_map, ids, predicted_cw, frame, settings, settings.wide_radius_px, robust=True)
+        if outcome is not None:
+            outcome.source = WIDE_SEARCH
+    if outcome is None and previous is not None:
+        outcome = _from_previous_frame(local_map, ids, frame, previous, settings)
+    if outcome is None:
+        return None
+    # A second guided pass from the refined pose finds the landmarks a poor prediction missed.
+    again = guided_pose(local_map, ids, outcome.pose_cw, frame, settings, settings.radius_px)
+    if again is not None and again.inliers >= outcome.inliers:
+        again.source = outcome.source
+        outcome = again
+    visible, _ = in_view(local_map, ids, outcome.pose_cw, settings.bounds)
+    local_map.visible[visible] += 1
+    local_map.found[outcome.landmark[outcome.landmark >= 0]] += 1
+    return outcome
+
+
+def _from_previous_frame(local_map: LocalMap, ids: np.ndarray, frame: FrameData,
+                         previous: tuple[FrameData, np.ndarray], settings: TrackingSettings) -> TrackOutcome | None:
+    last, last_landmark = previous
+    rows = np.flatnonzero((last_landmark >= 0) & local_map.alive[np.maximum(last_landmark, 0)])
+    pairs = match_mutual_nn(last.descriptors[rows], frame.descriptors, settings.max_distance, settings.ratio)
+    if len(pairs) < settings.min_inliers:
+        return None
+    world = local_map.positions[last_landmark[rows[pairs[:, 0]]]]
+    fit = ransac_pose(world, frame.points[pairs[:, 1]], settings.threshold_px / settings.focal, settings.min_inliers)
+    if fit is None:
+        return None
+    pose, inliers = fit
+    landmark = np.full(len(frame.points), -1, np.int64)
+    landmark[pairs[inliers, 1]] = last_landmark[rows[pairs[inliers, 0]]]
+    return TrackOutcome(pose, landmark, len(pairs), int(np.count_nonzero(inliers)), PREVIOUS_FRAME)
