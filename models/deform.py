@@ -256,6 +256,25 @@ class DeformableConv(nn.Module):
         return out if self.pointwise is None else self.pointwise(out)
 
 
+def separable_from_dense(weight: torch.Tensor, bias: torch.Tensor | None) -> dict[str, torch.Tensor]:
+    """The best depthwise + pointwise stand-in for a trained dense 3x3 kernel, to start a depthwise layer from.
+
+    Each input channel's [Cout, 9] slice of ``weight`` [Cout, C, 3, 3] is replaced by its rank-1 SVD
+    approximation u s v^T: the depthwise kernel takes v (its 9 taps), the pointwise column takes u s.
+    Returns ``conv.weight`` [C, 1, 3, 3], ``conv.bias`` [C] (zero), ``pointwise.weight`` [Cout, C, 1, 1] and
+    ``pointwise.bias`` [Cout] (the dense bias), as `DeformableConv` state-dict keys.
+    """
+    out_channels, channels = weight.shape[:2]
+    per_channel = weight.detach().float().permute(1, 0, 2, 3).reshape(channels, out_channels, 9)
+    u, s, vh = torch.linalg.svd(per_channel, full_matrices=False)
+    return {
+        "conv.weight": vh[:, 0, :].reshape(channels, 1, 3, 3).contiguous(),
+        "conv.bias": torch.zeros(channels),
+        "pointwise.weight": (u[:, :, 0] * s[:, :1]).transpose(0, 1).reshape(out_channels, channels, 1, 1).contiguous(),
+        "pointwise.bias": torch.zeros(out_channels) if bias is None else bias.detach().float().clone(),
+    }
+
+
 def set_deform_strategy(model: nn.Module, strategy: DeformStrategy) -> nn.Module:
     """Set the execution/export strategy of every `DeformableConv` in ``model``; returns ``model``."""
     if strategy not in ("torch", "native", "grid_sample"):

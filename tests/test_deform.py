@@ -185,3 +185,23 @@ def test_depthwise_samplers_match_the_reference_and_each_other():
         assert torch.allclose(a, b, atol=1e-3, rtol=1e-4), name
     with pytest.raises(ValueError, match="neither dense nor depthwise"):
         deform_conv2d(x, offset, torch.randn(4, 2, 3, 3), bias, mask)
+
+
+def test_a_separable_stand_in_is_exact_for_a_rank_one_kernel_and_best_otherwise():
+    from models.deform import separable_from_dense
+
+    generator = torch.Generator().manual_seed(3)
+    taps = torch.randn(6, 9, generator=generator)  # per input channel: one 3x3 pattern ...
+    mix = torch.randn(5, 6, generator=generator)  # ... scaled per output channel: exactly separable
+    dense = (mix[:, :, None] * taps[None]).reshape(5, 6, 3, 3)
+    bias = torch.randn(5, generator=generator)
+    layer = DeformableConv(6, 5, depthwise=True).eval()
+    layer.load_state_dict({**layer.state_dict(), **separable_from_dense(dense, bias)})
+    x = torch.randn(1, 6, 7, 8, generator=generator)
+    with torch.no_grad():
+        expected = torch.nn.functional.conv2d(x, dense, bias, padding=1)
+        assert torch.allclose(layer.pointwise(layer.conv(x)), expected, atol=1e-4)
+        noisy = dense + 0.3 * torch.randn(dense.shape, generator=generator)
+        stand_in = separable_from_dense(noisy, bias)
+        rebuilt = stand_in["pointwise.weight"][:, :, 0, 0, None, None] * stand_in["conv.weight"][None, :, 0]
+        assert (rebuilt - noisy).norm() < (dense - noisy).norm() + 1e-5  # rank-1 SVD: no worse than the true factors

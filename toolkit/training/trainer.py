@@ -106,6 +106,19 @@ def _load_state(path: Path, why: str = "cannot resume") -> dict:
         raise ToolkitError(f"{why}: {path} is corrupt or unreadable ({type(exc).__name__})") from None
 
 
+def dense_to_depthwise_deform(state: dict, model: torch.nn.Module) -> dict:
+    """``state`` with a dense deformable kernel replaced by its `separable_from_dense` stand-in when ``model``
+    has a depthwise deformable conv (so a depthwise model starts from trained dense weights); else ``state``."""
+    from models.deform import separable_from_dense
+
+    prefix = "deform."
+    target = getattr(getattr(model, "deform", None), "pointwise", None)
+    if target is None or f"{prefix}conv.weight" not in state or f"{prefix}pointwise.weight" in state:
+        return state
+    converted = separable_from_dense(state[f"{prefix}conv.weight"], state.get(f"{prefix}conv.bias"))
+    return {**state, **{prefix + key: value for key, value in converted.items()}}
+
+
 def initialise_from(source: str, model: torch.nn.Module, projection: torch.nn.Module | None) -> None:
     """Load starting weights for a new run (fresh optimizer and schedule: a fine-tune, not a resume).
 
@@ -119,12 +132,12 @@ def initialise_from(source: str, model: torch.nn.Module, projection: torch.nn.Mo
     try:
         if path.is_dir():
             state = _load_state(path / "train_state.pt", "cannot initialise")
-            model.load_state_dict(state["model"])
+            model.load_state_dict(dense_to_depthwise_deform(state["model"], model))
             if projection is not None and state.get("projection"):
                 projection.load_state_dict(state["projection"])
         else:
             loaded, _ = load_checkpoint(path)
-            model.load_state_dict(loaded.state_dict())
+            model.load_state_dict(dense_to_depthwise_deform(loaded.state_dict(), model))
     except CheckpointError as exc:
         raise ToolkitError(f"cannot initialise: {exc}") from None
     except (KeyError, RuntimeError) as exc:
