@@ -25,6 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from models.deform import DeformableConv
+from models.keypoints import unit_rows
 
 ACTIVATIONS = ("elu", "relu")
 CELL = 8
@@ -179,7 +180,7 @@ class FeatureNet(nn.Module):
 
     def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
         features = self.backbone(image)
-        descriptors = F.normalize(self.descriptor(features), p=2.0, dim=1)
+        descriptors = unit_rows(self.descriptor(features))
         logits = self.detector(features)
         if self.config.pixel_head_channels:
             logits = logits + self.pixel_head(image)
