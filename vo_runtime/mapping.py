@@ -27,6 +27,9 @@ class MappingConfig:
 
     triangulation_keyframes: int = 2     # covisible keyframes the new one triangulates against
     triangulation_candidates: int = 1500  # keypoints without a landmark, per keyframe, that may get one
+    # Lowe ratio for matches between keyframes (no stricter than tracking's): a wrong match along the
+    # epipolar line passes every geometric check but gives a wrong depth.
+    triangulation_ratio: float = 0.9
     epipolar_threshold_px: float = 4.0   # largest distance of a match from its epipolar line
     triangulation_threshold_px: float = 3.0
     # Smallest ray angle of a new landmark, as the arc it spans in detector pixels (angle = px / focal). The
@@ -34,6 +37,8 @@ class MappingConfig:
     # and the map shrinks frame after frame (measured on a synthetic scene at 2 px noise: 1 deg lost 70 % of
     # the scale over 100 frames, 3 deg none). In pixels the gate keeps its distance from the keypoint noise.
     min_parallax_px: float = 12.0
+    pose_min_parallax_px: float = 16.0   # tracking fits the pose to landmarks at least this far apart ...
+    pose_min_found: int = 3              # ... or found in this many frames, when it has enough of them
     # Re-triangulate a landmark from its first keyframe and the new one once their rays are this many times
     # further apart than those it was triangulated from: a short baseline gives a noisy depth, and keeping
     # only points whose (noisy) parallax passed the gate biases depths short, which shrinks the map.
@@ -47,7 +52,7 @@ class MappingConfig:
     ba_cull_px: float = 4.0              # ... and those still further off than this afterwards are dropped
     min_found_ratio: float = 0.25        # a young landmark found in fewer of the frames that should see it dies
     probation_keyframes: int = 2         # keyframes after creation at which a landmark must have ...
-    min_observations: int = 2            # ... this many keyframe observations, or die
+    min_observations: int = 3            # ... this many keyframe observations, or die
 
 
 def min_angle(config: MappingConfig, focal: float) -> float:
@@ -81,7 +86,7 @@ def triangulate_new_landmarks(local_map: LocalMap, number: int, config: MappingC
         essential = essential_between(other.pose_cw, new.pose_cw)
         pairs = match_epipolar(other.points[rows_a], other.descriptors[rows_a], new.points[rows_b],
                                new.descriptors[rows_b], essential, config.epipolar_threshold_px / focal,
-                               max_distance, ratio)
+                               max_distance, min(ratio or 1.0, config.triangulation_ratio))
         if len(pairs) == 0:
             continue
         a, b = rows_a[pairs[:, 0]], rows_b[pairs[:, 1]]

@@ -248,7 +248,9 @@ class MonoVO:
         low, high = frame.points.min(axis=0), frame.points.max(axis=0)
         return TrackingSettings(self._focal, (low[0], high[0], low[1], high[1]), cfg.search_radius_px,
                                 cfg.wide_search_radius_px, cfg.pnp_threshold_px, cfg.min_pnp_inliers,
-                                cfg.match_max_distance, cfg.match_ratio, cfg.max_local_points)
+                                cfg.match_max_distance, cfg.match_ratio, cfg.max_local_points,
+                                float(np.degrees(cfg.mapping.pose_min_parallax_px / self._focal)),
+                                cfg.mapping.pose_min_found)
 
     def _relocalise(self, frame: FrameData):
         cfg = self.config

@@ -11,7 +11,7 @@ from vo_runtime.geometry import pose_from_rvec, reprojection_errors, rvec_from_p
 
 # Refinement rounds as in mature feature-based VO: start with a loose gate (the prediction may be a few
 # pixels off) and tighten it, re-fitting on the inliers of the previous round each time.
-REFINE_GATES = (4.0, 2.0, 1.0, 1.0)
+REFINE_GATES = (2.0, 1.0, 1.0)
 
 
 def refine_pose(world: np.ndarray, image: np.ndarray, pose_cw: np.ndarray, threshold: float,
