@@ -58,7 +58,7 @@ def match_by_projection(projected_px: np.ndarray, landmark_desc: np.ndarray, key
     ratio against the second-best candidate). A keypoint claimed by several landmarks goes to the closest
     descriptor. Work is bounded: landmarks x candidates descriptor distances, no full distance matrix.
 
-    Returns [M, 2] int64 pairs (landmark row, keypoint row).
+    Returns [M, 2] int64 pairs (landmark row, keypoint row), ordered by landmark row.
     """
     if len(projected_px) == 0 or len(keypoints_px) == 0:
         return np.empty((0, 2), dtype=np.int64)
@@ -80,7 +80,8 @@ def match_by_projection(projected_px: np.ndarray, landmark_desc: np.ndarray, key
     pairs = np.stack([rows[keep], best[keep]], axis=1)
     pairs = pairs[np.argsort(best_dist[keep], kind="stable")]
     _, first = np.unique(pairs[:, 1], return_index=True)  # closest descriptor wins a contested keypoint
-    return pairs[np.sort(first)].astype(np.int64)
+    pairs = pairs[first]
+    return pairs[np.argsort(pairs[:, 0], kind="stable")].astype(np.int64)
 
 
 def match_epipolar(points_a: np.ndarray, desc_a: np.ndarray, points_b: np.ndarray, desc_b: np.ndarray,
