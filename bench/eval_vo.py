@@ -3,6 +3,7 @@
     python bench/eval_vo.py -o runs/vo_eval                    # default artefact and ORB, normal and low light
     python bench/eval_vo.py --features orb --light normal      # a subset
     python bench/eval_vo.py --set keyframe_max_gap=6 --keypoints 500,1000,2000   # sensitivity
+    python bench/eval_vo.py --size 320x240                      # every frame resized first (the speed setting)
 
 Runs each (sequence, features, light) in this process, one after the other, at the sequences' own
 resolution (the artefact resizes to its input), with onnxruntime and OpenCV on one thread. Writes
@@ -48,14 +49,20 @@ def parse_overrides(items: list[str]) -> dict:
 
 
 def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, overrides: dict, artefact: Path,
-            plot_dir: Path | None) -> dict:
+            plot_dir: Path | None, size: tuple[int, int] | None = None) -> dict:
     sequence = open_sequence(sequence_dir)
+    camera = sequence.camera
+    if size is not None:  # frames resized to width x height, intrinsics scaled to match
+        height, width = next(read_frames(sequence.frames[:1])).shape[:2]
+        camera = camera.resized((width, height), size)
     extractor = OrbExtractor(keypoints) if features == "orb" else FeatureExtractor(artefact, threads=1)
     top = {k: v for k, v in overrides.items() if "." not in k}
     mapping = {k.split(".", 1)[1]: v for k, v in overrides.items() if k.startswith("mapping.")}
     config = VOConfig(**top, mapping=MappingConfig(**mapping))
-    vo = VisualOdometry(extractor, sequence.camera, config)
+    vo = VisualOdometry(extractor, camera, config)
     for index, image in enumerate(read_frames(sequence.frames)):
+        if size is not None:
+            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
         if light == "low":
             image = darken(to_gray_u8(image), *LOWLIGHT, seed=index)
         vo.track(image, sequence.timestamps[index])
@@ -107,11 +114,13 @@ def main() -> int:
     parser.add_argument("--light", default="normal,low", help="normal and/or low (--lowlight 2,3,0.3)")
     parser.add_argument("--keypoints", default="2000", help="ORB features per frame; a list for a sensitivity table")
     parser.add_argument("--set", action="append", default=[], help="VOConfig field=value (JSON value; mapping.FIELD for MappingConfig), repeatable")
+    parser.add_argument("--size", help="WIDTHxHEIGHT: resize every frame first (e.g. 320x240); default: as stored")
     parser.add_argument("-o", "--output", type=Path)
     args = parser.parse_args()
     cv2.setNumThreads(1)
     artefact = args.artefact or default_artefact()
     overrides = parse_overrides(args.set)
+    size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
     if args.output is not None:
         args.output.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -120,7 +129,7 @@ def main() -> int:
             for light in args.light.split(","):
                 for keypoints in [int(k) for k in args.keypoints.split(",")]:
                     start = time.perf_counter()
-                    row = run_one(args.data / name, features, light, keypoints, overrides, artefact, args.output)
+                    row = run_one(args.data / name, features, light, keypoints, overrides, artefact, args.output, size)
                     row["wall_s"] = round(time.perf_counter() - start, 1)
                     rows.append(row)
                     print(table([row]).splitlines()[-1], flush=True)

@@ -95,3 +95,10 @@ def ray_angles(poses_a: np.ndarray, pose_b: np.ndarray, pts_a: np.ndarray, pts_b
     world_b = rays_b @ pose_b[:3, :3]
     cos = np.sum(world_a * world_b, axis=1) / (np.linalg.norm(world_a, axis=1) * np.linalg.norm(world_b, axis=1))
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def per_frame_motion(motion: np.ndarray, frames: int) -> np.ndarray:
+    """The constant per-frame motion that adds up to ``motion`` over ``frames`` frames (rotation angle and
+    translation divided evenly; close enough to seed the motion model)."""
+    rvec = cv2.Rodrigues(motion[:3, :3])[0] / frames
+    return make_pose(cv2.Rodrigues(rvec)[0], motion[:3, 3] / frames)

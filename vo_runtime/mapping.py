@@ -36,7 +36,9 @@ class MappingConfig:
     # gate sees the noisy angle, so points that pass are biased to too much parallax, i.e. too short a depth,
     # and the map shrinks frame after frame (measured on a synthetic scene at 2 px noise: 1 deg lost 70 % of
     # the scale over 100 frames, 3 deg none). In pixels the gate keeps its distance from the keypoint noise.
-    min_parallax_px: float = 12.0
+    # It is low so that tracking never runs out of landmarks (12 lost KITTI at 240x320); the pose then rests
+    # on the proven landmarks (next two fields), which keeps most of the bias out.
+    min_parallax_px: float = 6.0
     pose_min_parallax_px: float = 16.0   # tracking fits the pose to landmarks at least this far apart ...
     pose_min_found: int = 3              # ... or found in this many frames, when it has enough of them
     # Re-triangulate a landmark from its first keyframe and the new one once their rays are this many times

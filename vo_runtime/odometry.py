@@ -32,13 +32,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import cv2
 import numpy as np
 
 from vo_runtime.camera import Camera
 from vo_runtime.errors import CalibrationError, FrameError, VORuntimeError
 from vo_runtime.features import FeatureExtractor, Features, check_frame
-from vo_runtime.geometry import camera_centre, invert_pose, make_pose
+from vo_runtime.geometry import camera_centre, invert_pose, per_frame_motion
 from vo_runtime.initialiser import Initialiser
 from vo_runtime.localmap import Keyframe, LocalMap
 from vo_runtime.mapping import (MappingConfig, cull_landmarks, local_bundle_adjustment, refresh_landmarks,
@@ -74,7 +73,7 @@ class VOConfig:
     max_local_points: int = 1500         # landmarks projected per search (the most often found)
     keyframe_max_gap: int = 4            # a tracked frame becomes a keyframe at least this often ...
     keyframe_track_ratio: float = 0.8    # ... or when it tracks fewer than this share of the reference keyframe's landmarks
-    keyframe_min_tracked: int = 100      # ... or when it tracks fewer landmarks than this
+    keyframe_min_tracked: int = 50       # ... or when it tracks fewer landmarks than this
     keyframe_min_gap: int = 1            # ... but not sooner than this many frames after the last
     relocalise_keyframes: int = 5        # recent keyframes a lost frame tries to relocalise against (0: never)
     relocalise_frames: int = 3           # failed relocalisations before a fresh initialisation may start
@@ -108,6 +107,8 @@ class VOResult:
     problem: str | None = None  # why a skipped frame could not be used
     tracked_by: str | None = None  # local map | wide search | previous frame | relocalisation | two-view
     mapping_ms: float = 0.0  # of track_ms: keyframe work (triangulation, bundle adjustment, culling)
+    match_ms: float = 0.0    # of track_ms: guided matching against the local map
+    pose_ms: float = 0.0     # of track_ms: pose refinement on those matches
 
 
 class MonoVO:
@@ -212,8 +213,10 @@ class MonoVO:
         pixels = np.asarray(features.keypoints, np.float64)
         frame = FrameData.build(self.camera.normalise(pixels), pixels, features.descriptors)
         if mapped and self._last_tracked >= 0:
-            outcome = track_frame(self.map, self._local_ids, self._predict(index), frame, self._previous,
-                                  self._settings(frame))
+            settings = self._settings(frame)
+            outcome = track_frame(self.map, self._local_ids, self._predict(index), frame, self._previous, settings)
+            result.match_ms = 1e3 * settings.seconds["matching"]
+            result.pose_ms = 1e3 * settings.seconds["pose"]
             if outcome is not None:
                 self._accept(index, frame, outcome, TRACKING, result)
                 return
@@ -364,13 +367,6 @@ def detector_pixel(extractor: object, height: int, width: int) -> float:
     if not isinstance(input_width, int) or not isinstance(input_height, int) or input_width <= 0 or input_height <= 0:
         return 1.0
     return max(1.0, width / input_width, height / input_height)
-
-
-def per_frame_motion(motion: np.ndarray, frames: int) -> np.ndarray:
-    """The constant per-frame motion that adds up to ``motion`` over ``frames`` frames (rotation angle and
-    translation divided evenly; close enough to seed the motion model)."""
-    rvec = cv2.Rodrigues(motion[:3, :3])[0] / frames
-    return make_pose(cv2.Rodrigues(rvec)[0], motion[:3, 3] / frames)
 
 
 class VisualOdometry(MonoVO):

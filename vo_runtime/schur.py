@@ -23,6 +23,13 @@ def _project(poses: list[np.ndarray], points: np.ndarray, frame: np.ndarray, poi
     return cam, rotations
 
 
+def _accumulate(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
+    """Sum ``values`` [K, ...] into ``size`` bins by ``index`` [K] (np.add.at, but by bincount: ~10x faster)."""
+    flat = values.reshape(len(values), -1)
+    sums = np.stack([np.bincount(index, weights=flat[:, j], minlength=size) for j in range(flat.shape[1])], axis=1)
+    return sums.reshape((size,) + values.shape[1:])
+
+
 def _residuals(poses, points, frame, point, xy, focal) -> np.ndarray:
     cam, _ = _project(poses, points, frame, point)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -58,41 +65,42 @@ def schur_bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.nda
         proj = np.zeros((len(cam), 2, 3))
         proj[:, 0, 0] = proj[:, 1, 1] = focal / z
         proj[:, 0, 2], proj[:, 1, 2] = -focal * x / z ** 2, -focal * y / z ** 2
-        j_point = np.einsum("kab,kbc->kac", proj, rotations[obs_frame])            # [K, 2, 3]
+        j_point = proj @ rotations[obs_frame]            # [K, 2, 3]
         skew = np.zeros((len(cam), 3, 3))                                           # -[cam]x
         skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = z, -y, x
         skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = -z, y, -x
-        j_pose = np.concatenate([np.einsum("kab,kbc->kac", proj, skew), proj], axis=2)  # [K, 2, 6]
+        j_pose = np.concatenate([proj @ skew, proj], axis=2)  # [K, 2, 6]
         norm = np.linalg.norm(res, axis=1)
         weight = np.where(norm <= huber_px, 1.0, huber_px / np.maximum(norm, 1e-12))   # Huber IRLS
         wj_pose = j_pose * weight[:, None, None]
         wj_point = j_point * weight[:, None, None]
-        h_ll = np.zeros((n_points, 3, 3))
-        np.add.at(h_ll, obs_point, np.einsum("kai,kaj->kij", wj_point, j_point))
-        b_l = np.zeros((n_points, 3))
-        np.add.at(b_l, obs_point, -np.einsum("kai,ka->ki", wj_point, res))
-        h_pp = np.zeros((n_free, 6, 6))
-        np.add.at(h_pp, slot[free], np.einsum("kai,kaj->kij", wj_pose[free], j_pose[free]))
-        b_p = np.zeros((n_free, 6))
-        np.add.at(b_p, slot[free], -np.einsum("kai,ka->ki", wj_pose[free], res[free]))
-        h_pl = np.zeros((n_points, n_free, 6, 3))  # dense over (point, free pose): both are small here
-        np.add.at(h_pl, (obs_point[free], slot[free]), np.einsum("kai,kaj->kij", wj_pose[free], j_point[free]))
+        h_ll = _accumulate(obs_point, wj_point.transpose(0, 2, 1) @ j_point, n_points)
+        b_l = _accumulate(obs_point, -(wj_point.transpose(0, 2, 1) @ res[:, :, None])[:, :, 0], n_points)
+        wj_free = wj_pose[free].transpose(0, 2, 1)
+        h_pp = _accumulate(slot[free], wj_free @ j_pose[free], n_free)
+        b_p = _accumulate(slot[free], -(wj_free @ res[free][:, :, None])[:, :, 0], n_free)
+        # Dense over (point, free pose): both are small here.
+        h_pl = _accumulate(obs_point[free] * n_free + slot[free], wj_free @ j_point[free],
+                           n_points * n_free).reshape(n_points, n_free, 6, 3)
         improved = converged = False
         while not improved and damping < 1e8:
             h_ll_damped = h_ll + damping * (h_ll * np.eye(3)) + 1e-9 * np.eye(3)
             h_ll_inv = np.linalg.inv(h_ll_damped)
-            y_mat = np.einsum("mfab,mbc->mfac", h_pl, h_ll_inv)                    # [M, F, 6, 3]
+            y_mat = h_pl @ h_ll_inv[:, None]                                      # [M, F, 6, 3]
+            # Sums over points as one matrix product: rows (pose, axis), columns (point, axis).
+            y_flat = y_mat.transpose(1, 2, 0, 3).reshape(6 * n_free, 3 * n_points)
+            h_flat = h_pl.transpose(1, 2, 0, 3).reshape(6 * n_free, 3 * n_points)
             reduced = np.zeros((n_free, 6, n_free, 6))
             for f in range(n_free):
                 reduced[f, :, f, :] = h_pp[f] + damping * (h_pp[f] * np.eye(6)) + 1e-9 * np.eye(6)
-            reduced -= np.einsum("mfab,mgcb->fagc", y_mat, h_pl)
-            rhs = b_p - np.einsum("mfab,mb->fa", y_mat, b_l)
+            reduced -= (y_flat @ h_flat.T).reshape(n_free, 6, n_free, 6)
+            rhs = b_p - (y_flat @ b_l.ravel()).reshape(n_free, 6)
             try:
                 d_pose = np.linalg.solve(reduced.reshape(6 * n_free, 6 * n_free), rhs.ravel()).reshape(n_free, 6)
             except np.linalg.LinAlgError:
                 damping *= 10
                 continue
-            d_point = np.einsum("mab,mb->ma", h_ll_inv, b_l - np.einsum("mfab,fa->mb", h_pl, d_pose))
+            d_point = (h_ll_inv @ (b_l - (h_flat.T @ d_pose.ravel()).reshape(n_points, 3))[:, :, None])[:, :, 0]
             trial_poses = poses[:n_fixed] + [
                 make_pose(cv2.Rodrigues(d[:3])[0] @ p[:3, :3], cv2.Rodrigues(d[:3])[0] @ p[:3, 3] + d[3:])
                 for p, d in zip(poses[n_fixed:], d_pose)]

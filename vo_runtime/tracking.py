@@ -11,7 +11,8 @@ distortion model is needed to project.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -60,6 +61,7 @@ class TrackingSettings:
     max_points: int
     pose_min_angle: float = 0.0  # degrees; landmarks triangulated from closer rays ...
     pose_min_found: int = 1      # ... and found in fewer frames only join the pose fit when too few others
+    seconds: dict = field(default_factory=lambda: {"matching": 0.0, "pose": 0.0})  # time spent, for the bench
 
 
 def in_view(local_map: LocalMap, ids: np.ndarray, pose_cw: np.ndarray,
@@ -78,14 +80,25 @@ def guided_pose(local_map: LocalMap, ids: np.ndarray, pose_cw: np.ndarray, frame
                 settings: TrackingSettings, radius_px: float, robust: bool = False) -> TrackOutcome | None:
     """Guided matching of ``ids`` around their projections from ``pose_cw``, then the pose refined on them
     (``robust``: PnP RANSAC first, for a prediction that may be far off)."""
+    start = time.perf_counter()
     visible, projected = in_view(local_map, ids, pose_cw, settings.bounds)
     if len(visible) > settings.max_points:  # bound the work: the most often found landmarks first
         keep = np.argsort(-local_map.found[visible], kind="stable")[: settings.max_points]
         visible, projected = visible[keep], projected[keep]
     pairs = match_by_projection(projected, local_map.descriptors[visible], frame.points, frame.descriptors,
                                 radius_px / settings.focal, settings.max_distance, settings.ratio, tree=frame.tree)
+    matched = time.perf_counter()
+    settings.seconds["matching"] += matched - start
     if len(pairs) < settings.min_inliers:
         return None
+    try:
+        return _fit_pose(local_map, visible, pairs, pose_cw, frame, settings, robust)
+    finally:
+        settings.seconds["pose"] += time.perf_counter() - matched
+
+
+def _fit_pose(local_map: LocalMap, visible: np.ndarray, pairs: np.ndarray, pose_cw: np.ndarray, frame: FrameData,
+              settings: TrackingSettings, robust: bool) -> TrackOutcome | None:
     world, image = local_map.positions[visible[pairs[:, 0]]], frame.points[pairs[:, 1]]
     threshold = settings.threshold_px / settings.focal
     # The pose rests on proven landmarks when there are enough: those triangulated from far-apart rays, or
