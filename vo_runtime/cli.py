@@ -203,8 +203,10 @@ def run(args: argparse.Namespace) -> int:
 def _frame_record(result: VOResult, path: Path) -> dict[str, Any]:
     record = {"index": result.index, "file": path.name, "timestamp": result.timestamp, "state": result.status,
               "features": result.num_features, "matches": result.num_matches, "inliers": result.num_inliers,
-              "landmarks": result.num_landmarks, "keyframe": result.keyframe,
-              "extract_ms": round(result.extract_ms, 3), "track_ms": round(result.track_ms, 3)}
+              "landmarks": result.num_landmarks, "keyframe": result.keyframe, "tracked_by": result.tracked_by,
+              "extract_ms": round(result.extract_ms, 3), "track_ms": round(result.track_ms, 3),
+              "match_ms": round(result.match_ms, 3), "pose_ms": round(result.pose_ms, 3),
+              "mapping_ms": round(result.mapping_ms, 3)}
     if result.problem is not None:
         record["problem"] = result.problem
     return record
