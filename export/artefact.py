@@ -14,6 +14,7 @@ from pathlib import Path
 import onnx
 import torch
 
+from export.half import to_fp16
 from export.checks import check_against_profile, require_non_negative_gathers
 from export.graphs import DENSE_OUTPUTS, KEYPOINT_OUTPUTS, DenseGraph, KeypointGraph
 from export.onnx_export import export_onnx, op_histogram
@@ -68,55 +69,6 @@ EXPORTED_ARTEFACT = OutputKind(
 )
 
 
-def keypoint_postprocessing_nodes(model: onnx.ModelProto) -> list[str]:
-    """Names of the nodes downstream of every TopK: the keypoint coordinates, the flat indices of sub-pixel
-    refinement and descriptor sampling. They must stay FP32: a flat pixel index (up to 76,799 at 240x320)
-    overflows half precision (max 65,504), and integers above 2,048 are no longer exact in it."""
-    consumers: dict[str, list[onnx.NodeProto]] = {}
-    for node in model.graph.node:
-        for name in node.input:
-            consumers.setdefault(name, []).append(node)
-    blocked: dict[str, None] = {}
-    frontier = [node for node in model.graph.node if node.op_type == "TopK"]
-    while frontier:
-        node = frontier.pop()
-        if node.name in blocked:
-            continue
-        blocked[node.name] = None
-        for output in node.output:
-            frontier.extend(consumers.get(output, []))
-    return list(blocked)
-
-
-def _to_fp16(model: onnx.ModelProto) -> onnx.ModelProto:
-    """FP16 weights and activations for the network; keypoint post-processing stays FP32."""
-    from onnxruntime.transformers.float16 import DEFAULT_OP_BLOCK_LIST, convert_float_to_float16
-
-    blocked = keypoint_postprocessing_nodes(model)
-    converted = convert_float_to_float16(model, keep_io_types=True, op_block_list=list(DEFAULT_OP_BLOCK_LIST),
-                                         node_block_list=blocked)
-    _drop_half_round_trips(converted, set(blocked))
-    return converted
-
-
-def _drop_half_round_trips(model: onnx.ModelProto, fp32_nodes: set[str]) -> None:
-    """The converter still routes values between two FP32 (blocked) nodes through a Cast to FP16 and back,
-    which loses the very integers blocking was for. Read the FP32 value directly instead; the dead casts go."""
-    producer = {output: node for node in model.graph.node for output in node.output}
-    for node in model.graph.node:
-        if node.op_type != "Cast" or onnx.helper.get_attribute_value(node.attribute[0]) != onnx.TensorProto.FLOAT:
-            continue
-        half = producer.get(node.input[0])
-        if half is None or half.op_type != "Cast" or producer.get(half.input[0]) is None:
-            continue
-        if producer[half.input[0]].name in fp32_nodes:
-            node.input[0] = half.input[0]  # a float -> float Cast: an identity
-    used = {name for node in model.graph.node for name in node.input} | {o.name for o in model.graph.output}
-    dead = [node for node in model.graph.node if node.op_type == "Cast" and not any(o in used for o in node.output)]
-    for node in dead:
-        model.graph.node.remove(node)
-
-
 def _resolve(options: ExportOptions, profile: TargetProfile) -> tuple[tuple[int, int], str, int]:
     size = options.input_size or profile.default_input_size
     if size[0] % 8 or size[1] % 8 or min(size) < MIN_SIDE or max(size) > MAX_SIDE:
@@ -169,8 +121,8 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
 
     # On the TX2, FP16 is a TensorRT build flag on the FP32 graph; on the CPU the file itself becomes FP16.
     onnx_fp16 = precision == "fp16" and profile.runtime.startswith("onnxruntime")
-    keypoint_model = _to_fp16(keypoint_export.model) if onnx_fp16 else keypoint_export.model
-    dense_model = _to_fp16(dense_export.model) if onnx_fp16 else dense_export.model
+    keypoint_model = to_fp16(keypoint_export.model) if onnx_fp16 else keypoint_export.model
+    dense_model = to_fp16(dense_export.model) if onnx_fp16 else dense_export.model
 
     parity = measure_parity(keypoint_module, keypoint_model, dense_module, dense_model, images, [p.name for p in paths])
     lowest_gather = require_non_negative_gathers(keypoint_model, images, profile)

@@ -19,6 +19,7 @@ import numpy as np
 import onnx
 
 from export.artefact import ARTEFACT_FILES, MIN_IDENTICAL, artefact_manifest
+from export.half import to_fp16
 from export.checks import check_against_profile, require_non_negative_gathers
 from export.onnx_export import op_histogram
 from export.parity import default_parity_paths, prepare_image
@@ -101,10 +102,8 @@ def quantise_int8(model: onnx.ModelProto, calibration: np.ndarray, exclude: list
 
 
 def quantise_fp16(model: onnx.ModelProto) -> onnx.ModelProto:
-    """FP16 weights and arithmetic, FP32 inputs and outputs (Cast at the edges)."""
-    from onnxruntime.transformers.float16 import convert_float_to_float16
-
-    return convert_float_to_float16(model, keep_io_types=True)
+    """FP16 weights and arithmetic, FP32 inputs and outputs (Cast at the edges), post-processing in FP32."""
+    return to_fp16(model)
 
 
 # What --force may replace: an artefact this command wrote before (its manifest records the quantisation).
