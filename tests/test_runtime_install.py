@@ -69,8 +69,10 @@ def runtime_venv(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     site = next((venv / "lib").glob("python3*/site-packages"))
     _link_distributions(_closure(requirements), root / "deps")
     (site / "runtime-deps.pth").write_text(str(root / "deps") + "\n")
-    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--prefix", str(venv), str(wheel)],
-                   check=True, capture_output=True)
+    # --ignore-installed: without it pip first uninstalls the edgefeat of the environment running the tests
+    # (the developer's editable install), even though it installs into another prefix.
+    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--ignore-installed", "-q", "--prefix",
+                    str(venv), str(wheel)], check=True, capture_output=True)
     work = root / "elsewhere"
     work.mkdir()
     return venv, work
