@@ -145,3 +145,17 @@ def test_corrupt_artefacts_are_refused(artefact, tmp_path):
     (tmp_path / "nomanifest").mkdir()
     with pytest.raises(ArtefactError, match="manifest.json is missing"):
         FeatureExtractor(tmp_path / "nomanifest")
+
+
+def test_squeezed_frames_are_measured_and_the_cli_warns(shared_data, artefact, capsys):
+    from vo_runtime.cli import main as vo_main
+
+    extractor = FeatureExtractor(artefact)  # 240x320 input
+    assert extractor.aspect_distortion(480, 640) == pytest.approx(0.0)
+    assert extractor.aspect_distortion(370, 1226) == pytest.approx((1226 / 370) / (320 / 240) - 1.0)
+    assert extractor.aspect_distortion(640, 480) == pytest.approx(320 / 240 * 320 / 240 - 1.0)  # portrait
+    for sequence, warned in (("kitti_odom06_f000000-000050", True), ("tum_fr2_desk_snippet", False)):
+        assert vo_main(["--artefact", str(artefact), "--images", str(shared_data / sequence), "--max-frames", "2",
+                        "--no-progress"]) == 0
+        err = capsys.readouterr().err
+        assert ("--input-size 152x504" in err) is warned and ("warning:" in err) is warned

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any, Iterator
 
+import cv2
 import numpy as np
 
 from vo_runtime.artefact import default_artefact
@@ -162,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
     frames = sequence.frames[: args.max_frames]
     extractor = (OrbExtractor(args.max_keypoints) if args.features == "orb"
                  else FeatureExtractor(args.artefact, threads=args.threads, providers=providers))
+    _warn_on_squeezed_frames(extractor, sequence.camera, frames)
     vo = VisualOdometry(extractor, sequence.camera)
     for index, path in enumerate(_progress(iter(frames), len(frames), not args.no_progress)):
         _track_file(vo, path, sequence.timestamps[index], lowlight, index)
@@ -198,6 +200,26 @@ def run(args: argparse.Namespace) -> int:
         print(f"warning: skipped {len(skipped)} of {len(frames)} frames (pose held), first: {skipped[0].problem}",
               file=sys.stderr)
     return 0
+
+
+ASPECT_WARNING = 0.1  # a frame stretched more than 10 % on one axis by the resize to the artefact's input
+
+
+def _warn_on_squeezed_frames(extractor: Any, camera: Any, frames: list[Path]) -> None:
+    """One warning line when the artefact's input aspect differs from the camera's: export for the camera."""
+    if not hasattr(extractor, "aspect_distortion"):
+        return
+    height, width = camera.height, camera.width
+    if not (height and width) and frames:  # calibration without a size (KITTI's): the first frame's
+        first = cv2.imread(str(frames[0]), cv2.IMREAD_UNCHANGED)
+        height, width = (None, None) if first is None else first.shape[:2]
+    if not (height and width) or extractor.aspect_distortion(height, width) <= ASPECT_WARNING:
+        return
+    pixels = extractor.height * extractor.width
+    suggestion = f"{8 * round(math.sqrt(pixels * height / width) / 8)}x{8 * round(math.sqrt(pixels * width / height) / 8)}"
+    print(f"warning: {width}x{height} frames are resized to the artefact's {extractor.width}x{extractor.height}, "
+          f"another aspect, which costs keypoint precision; export an artefact for this camera "
+          f"(toolkit export --input-size {suggestion}, as many pixels)", file=sys.stderr)
 
 
 def _frame_record(result: VOResult, path: Path) -> dict[str, Any]:
