@@ -85,14 +85,16 @@ def deform_conv2d(
 
     # A one-pixel zero border lets every out-of-image corner read a zero: clamping a corner to
     # [-1, size] moves it onto the border without changing its (zero) value, and keeps indices >= 0.
-    padded_h, padded_w = height + 2, width + 2
+    padded_h, padded_w = int(height) + 2, int(width) + 2  # Python ints: traced sizes would make the index int64
     rows = torch.stack([y0, y0, y0 + 1.0, y0 + 1.0]).clamp(-1.0, float(height)) + 1.0
     cols = torch.stack([x0, x0 + 1.0, x0, x0 + 1.0]).clamp(-1.0, float(width)) + 1.0
     weights = torch.stack([wy0 * wx0, wy0 * wx1, wy1 * wx0, wy1 * wx1])  # [4, B, taps, Ho, Wo]
     if mask is not None:
         weights = weights * mask.reshape(1, batch, taps, out_h, out_w)
-    batch_start = (torch.arange(batch, dtype=dtype, device=device) * (padded_h * padded_w)).view(1, batch, 1, 1, 1)
-    flat_index = (rows * padded_w + cols + batch_start).reshape(4, -1).to(torch.int32)  # TensorRT has no int64 tensors
+    # The flat index in int32 (TensorRT has no int64 tensors): rows and columns are small enough to be exact
+    # even in half precision, their product with the row length is not (4,800 at 480x640 > 2,048).
+    batch_start = (torch.arange(int(batch), dtype=torch.int32, device=device) * (padded_h * padded_w)).view(1, -1, 1, 1, 1)
+    flat_index = (rows.to(torch.int32) * padded_w + cols.to(torch.int32) + batch_start).reshape(4, -1)
     weights = weights.reshape(4, -1, 1).to(x.dtype)
 
     # One Gather per corner, weighted and added: summing a stacked [4, ...] product over its first axis

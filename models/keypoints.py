@@ -38,15 +38,17 @@ def border_mask(height: int, width: int, border: int, like: torch.Tensor) -> tor
 def top_k_keypoints(scores: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
     """scores [H, W] -> keypoints [k, 2] (x, y) float and their scores [k], best first.
 
-    Coordinates come from the flat index in float arithmetic (exact below 2^24 pixels), avoiding
-    integer division, which TensorRT 8.0 handles poorly.
+    The coordinates are read from a constant [H*W, 2] table at the top-k indices: no integer division
+    (which TensorRT 8.0 handles poorly) and no flat index in floating point, which half precision cannot
+    hold (76,799 at 240x320 is beyond FP16's 65,504) when TensorRT runs a layer in FP16. Every value in the
+    table is below 2,048, so exact in FP16.
     """
     height, width = scores.shape
     values, indices = torch.topk(scores.reshape(-1), k)
-    flat = indices.to(scores.dtype)
-    y = torch.floor(flat / width)
-    x = flat - y * width
-    return torch.stack([x, y], dim=1), values
+    rows = torch.arange(height, dtype=scores.dtype, device=scores.device)
+    cols = torch.arange(width, dtype=scores.dtype, device=scores.device)
+    table = torch.stack([cols.repeat(height), rows.repeat_interleave(width)], dim=1)  # [H*W, 2]
+    return torch.index_select(table, 0, indices), values
 
 
 def refine_keypoints(heatmap: torch.Tensor, keypoints: torch.Tensor) -> torch.Tensor:
@@ -59,14 +61,19 @@ def refine_keypoints(heatmap: torch.Tensor, keypoints: torch.Tensor) -> torch.Te
         [K, 2] float (x, y), each within half a pixel of its peak. The 8x8-cell softmax puts a point's
         mass on neighbouring pixels too; the integer peak alone costs ~0.07 px of localisation error on
         HPatches. Only the K windows are read (9 gathers each), not the whole map, so it costs ~nothing.
+
+    The window indices are int32 arithmetic on a zero-bordered map (no clamping, always in range): a flat
+    index in floating point would overflow half precision (see `top_k_keypoints`).
     """
     _, _, height, width = heatmap.shape
+    padded = F.pad(heatmap, (1, 1, 1, 1)).reshape(-1)  # [(H+2)*(W+2)]
     offsets = torch.tensor([-1.0, 0.0, 1.0], dtype=heatmap.dtype, device=heatmap.device)
     dx, dy = offsets.repeat(3), offsets.repeat_interleave(3)  # [9] each, row-major 3x3 window
-    cols = (keypoints[:, :1] + dx).clamp(0.0, float(width - 1))
-    rows = (keypoints[:, 1:] + dy).clamp(0.0, float(height - 1))
-    index = (rows * width + cols).reshape(-1).to(torch.int32)
-    window = torch.index_select(heatmap.reshape(-1), 0, index).reshape(-1, 9)  # [K, 9]
+    step = torch.tensor([-1, 0, 1], dtype=torch.int32, device=heatmap.device)
+    window_offsets = step.repeat_interleave(3) * (width + 2) + step.repeat(3)  # [9] int32
+    centre = (keypoints[:, 1:].to(torch.int32) + 1) * (width + 2) + keypoints[:, :1].to(torch.int32) + 1  # [K, 1]
+    index = (centre + window_offsets).reshape(-1)
+    window = torch.index_select(padded, 0, index).reshape(-1, 9)  # [K, 9]
     moments = window @ torch.stack([torch.ones_like(dx), dx, dy], dim=1)  # [K, 3]: mass, x and y moments
     shift = moments[:, 1:] / moments[:, :1].clamp(min=1e-12)
     return keypoints + shift.clamp(-0.5, 0.5)
@@ -102,7 +109,8 @@ def sample_descriptors(descriptors: torch.Tensor, keypoints: torch.Tensor) -> to
     table = descriptors.reshape(dim, height * width).transpose(0, 1)  # [h*w, D]
 
     def corner(row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
-        return torch.index_select(table, 0, (row * width + col).to(torch.int32))  # [K, D]
+        # int32 arithmetic: at 480x640 the flat index reaches 4,799, no longer exact in half precision
+        return torch.index_select(table, 0, row.to(torch.int32) * width + col.to(torch.int32))  # [K, D]
 
     top_left, top_right, bottom_left, bottom_right = corner(v0, u0), corner(v0, u1), corner(v1, u0), corner(v1, u1)
     top = top_left + (top_right - top_left) * wu

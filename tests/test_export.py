@@ -187,3 +187,35 @@ def test_tampered_artefact_is_rejected_by_the_runtime(artefacts, tmp_path):
     (copy / "model.onnx").write_bytes(bytes(data))
     with pytest.raises(ArtefactError, match="checksum"):
         FeatureExtractor(copy)
+
+
+@pytest.mark.parametrize("size", ["240x320", "480x640"])
+def test_tx2_graph_survives_every_layer_in_fp16(tmp_path, size):
+    # TensorRT built with --fp16 may run any float layer in half precision. Worst case, emulated here:
+    # every float tensor of the tx2 graph in FP16 (onnxruntime's converter, nothing kept in FP32). Index
+    # arithmetic in float overflowed there (a flat pixel index beyond 65,504) and the gathers read outside
+    # their tensors. Shipped weights: random ones give flat heatmaps full of ties.
+    from onnxruntime.transformers.float16 import convert_float_to_float16
+
+    out = tmp_path / "tx2"
+    assert main(["export", "--target", "tx2", "--input-size", size, "-o", str(out)]) == 0
+    _, model = read(out)
+    half = convert_float_to_float16(onnx.load(str(out / "model.onnx")), keep_io_types=True, op_block_list=[])
+    sessions = [ort_cpu(m) for m in (model, half)]
+    height, width = (int(v) for v in size.split("x"))
+    image = cv2.imread(str(Path(__file__).parents[1] / "export" / "parity_images" / "hopper.png"), cv2.IMREAD_GRAYSCALE)
+    feed = {"image": (cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA) / 255.0).astype(np.float32)[None, None]}
+    (k32, d32, n32), (k16, d16, n16) = (s.run(["keypoints", "descriptors", "num_valid"], feed) for s in sessions)
+    k32, d32, k16, d16 = k32[: int(n32[0])], d32[: int(n32[0])], k16[: int(n16[0])], d16[: int(n16[0])]
+    assert len(k32) > 200 and abs(len(k16) - len(k32)) <= 0.02 * len(k32)
+    distance = np.linalg.norm(k32[:, None] - k16[None], axis=2)
+    nearest = distance.argmin(axis=1)
+    found = distance[np.arange(len(k32)), nearest] < 0.5
+    assert found.mean() >= 0.97
+    assert np.median(np.sum(d32[found] * d16[nearest[found]], axis=1)) >= 0.99
+
+
+def ort_cpu(model: onnx.ModelProto):
+    import onnxruntime as ort
+
+    return ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
