@@ -13,6 +13,7 @@ Then, per row, the share of node time by op type from onnxruntime's profiler (on
 
     python bench/bench_speed.py                    # 240x320, 1 thread, 50 rounds
     python bench/bench_speed.py --rounds 100 --keep out/bench-artefacts
+    python bench/bench_speed.py --candidate dw=runs/dw/best.safetensors   # + a candidate's FP32 and INT8 rows
 """
 from __future__ import annotations
 
@@ -82,6 +83,23 @@ def build_artefacts(folder: Path, size: str) -> dict[str, Path]:
     return {name: paths[name] / "model.onnx" for name in order}
 
 
+def candidate_artefacts(folder: Path, size: str, candidates: list[str]) -> dict[str, Path]:
+    """``LABEL=CHECKPOINT`` candidates (an architecture study's runs): x86 FP32 and INT8 keypoint graphs."""
+    paths = {}
+    for item in candidates:
+        label, _, checkpoint = item.partition("=")
+        if not checkpoint:
+            raise SystemExit(f"--candidate takes LABEL=CHECKPOINT, got {item!r}")
+        fp32, int8 = folder / f"candidate-{label}", folder / f"candidate-{label}-int8"
+        if not (fp32 / "manifest.json").is_file():
+            _toolkit("export", "--target", "x86-cpu", "--checkpoint", checkpoint, "--input-size", size, "-o", str(fp32))
+        if not (int8 / "manifest.json").is_file():
+            _toolkit("quantise", "--artefact", str(fp32), "--mode", "int8", "-o", str(int8))
+        paths[f"{label} FP32 x86"] = fp32 / "model.onnx"
+        paths[f"{label} INT8 x86"] = int8 / "model.onnx"
+    return paths
+
+
 def reference_models(folder: Path, height: int, width: int) -> tuple[dict[str, Path], list[str]]:
     """SuperPoint's and XFeat's dense graphs (heads only), random weights; notes for rows left out."""
     torch.manual_seed(0)
@@ -144,6 +162,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--rounds", type=int, default=50)
     parser.add_argument("--keep", type=Path, help="folder to keep the exported artefacts in (reused when present)")
+    parser.add_argument("--candidate", action="append", default=[], metavar="LABEL=CHECKPOINT",
+                        help="also time this checkpoint's x86 FP32 and INT8 keypoint graphs (repeatable)")
     args = parser.parse_args()
     height, width = (int(v) for v in args.size.split("x"))
     torch.set_num_threads(1)
@@ -152,6 +172,7 @@ def main() -> None:
         folder.mkdir(parents=True, exist_ok=True)
         models, notes = reference_models(folder, height, width)
         models.update(build_artefacts(folder, args.size))
+        models.update(candidate_artefacts(folder, args.size, args.candidate))
         sessions = {name: session(path, args.threads) for name, path in models.items()}
         image = np.random.default_rng(0).random((1, 1, height, width), dtype=np.float32)
         timings = time_interleaved(sessions, image, args.rounds)
@@ -168,9 +189,10 @@ def main() -> None:
         if XFEAT in medians:
             line += f" {medians[XFEAT] / medians[name]:13.2f}x"
         print(line)
-    int8, fp32 = medians.get("FeatureNet ReLU INT8 x86"), medians.get("FeatureNet ReLU FP32 x86")
-    if int8 and fp32:
-        print(f"INT8 / FP32 ReLU speed-up: {fp32 / int8:.2f}x")
+    for fp32_name in [name for name in medians if name.endswith("FP32 x86")]:
+        int8_name = fp32_name.replace("FP32", "INT8")
+        if int8_name in medians:
+            print(f"INT8 speed-up, {fp32_name[: -len(' FP32 x86')]}: {medians[fp32_name] / medians[int8_name]:.2f}x")
     for note in notes:
         print(f"note: {note}")
     print("\nshare of node time by op type (onnxruntime profiler, 10 runs each; top 6)")
