@@ -69,8 +69,9 @@ def test_a_non_editable_install_exports_the_shipped_model_without_shared_data(tm
     # The dependencies only (a path in a .pth does not run that folder's own .pth files, so the editable
     # checkout of this repository stays invisible).
     (site / "deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
-    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--prefix", str(venv), str(wheel)],
-                   check=True, capture_output=True)
+    # --ignore-installed: otherwise pip uninstalls the running environment's own (editable) edgefeat first
+    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--ignore-installed", "-q", "--prefix",
+                    str(venv), str(wheel)], check=True, capture_output=True)
     work = tmp_path / "elsewhere" / "cwd"
     work.mkdir(parents=True)
     env = {key: value for key, value in os.environ.items() if key not in ("PYTHONPATH", "EDGEFEAT_DATA")}
