@@ -47,6 +47,27 @@ def test_default_names_resolve_to_the_shipped_files() -> None:
     assert resolve_checkpoint("runs/x.safetensors") == Path("runs/x.safetensors")
 
 
+def test_default_artefact_follows_the_shipped_relu_weights(tmp_path: Path) -> None:
+    # The VO's default artefact must follow the shipped weights and the current graph: re-export it
+    # (toolkit export --target x86-cpu --checkpoint default-relu -o vo_runtime/default_artefact --force)
+    # whenever either changes.
+    from models.featurenet import FeatureNetConfig
+    from vo_runtime.artefact import default_artefact, verify_artefact
+
+    manifest = verify_artefact(default_artefact())
+    digest = hashlib.sha256(shipped_checkpoint("featurenet-relu").read_bytes()).hexdigest()
+    assert manifest["model"]["checkpoint_sha256"] == digest
+    assert manifest["target"] == "x86-cpu" and manifest["model"]["config"]["activation"] == "relu"
+    assert FeatureNetConfig(**manifest["model"]["config"]) == load_checkpoint(shipped_checkpoint("featurenet-relu"))[0].config
+    # ... and the graph this code exports (op for op; bit-identity would depend on the CPU's float folding)
+    from toolkit.cli import main
+
+    assert main(["export", "--target", "x86-cpu", "--checkpoint", "default-relu", "-o", str(tmp_path / "fresh")]) == 0
+    fresh = verify_artefact(tmp_path / "fresh")
+    assert fresh["onnx"]["op_types"] == manifest["onnx"]["op_types"]
+    assert fresh["input"] == manifest["input"] and fresh["postprocess"] == manifest["postprocess"]
+
+
 def _warp(gray: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """A known mild homography (rotation, zoom, perspective) and the warped image."""
     rng = np.random.default_rng(seed)
