@@ -67,10 +67,10 @@ def refine_keypoints(heatmap: torch.Tensor, keypoints: torch.Tensor) -> torch.Te
     """
     _, _, height, width = heatmap.shape
     padded = F.pad(heatmap, (1, 1, 1, 1)).reshape(-1)  # [(H+2)*(W+2)]
-    offsets = torch.tensor([-1.0, 0.0, 1.0], dtype=heatmap.dtype, device=heatmap.device)
-    dx, dy = offsets.repeat(3), offsets.repeat_interleave(3)  # [9] each, row-major 3x3 window
     step = torch.tensor([-1, 0, 1], dtype=torch.int32, device=heatmap.device)
-    window_offsets = step.repeat_interleave(3) * (width + 2) + step.repeat(3)  # [9] int32
+    step_x, step_y = step.repeat(3), step.repeat_interleave(3)  # [9] each, row-major 3x3 window
+    window_offsets = step_y * (width + 2) + step_x  # [9] int32
+    dx, dy = step_x.to(heatmap.dtype), step_y.to(heatmap.dtype)
     centre = (keypoints[:, 1:].to(torch.int32) + 1) * (width + 2) + keypoints[:, :1].to(torch.int32) + 1  # [K, 1]
     index = (centre + window_offsets).reshape(-1)
     window = torch.index_select(padded, 0, index).reshape(-1, 9)  # [K, 9]

@@ -221,7 +221,7 @@ def test_fp16_artefact_runs_and_reports_its_precision(random_checkpoint_and_arte
 
 def test_fp16_quantise_at_240x320_keeps_keypoint_indices_exact(random_checkpoint_and_artefact, tmp_path):
     # 240x320 has 76,800 pixels: a flat pixel index in half precision overflows (max 65,504), so the
-    # post-processing must stay FP32 for the artefact to run and keep its keypoints.
+    # graph's gather indices must never pass through a float for the FP16 artefact to run and keep its keypoints.
     _, artefact = random_checkpoint_and_artefact
     out = tmp_path / "half"
     assert main(["quantise", "--artefact", str(artefact), "--mode", "fp16", "-o", str(out)]) == 0

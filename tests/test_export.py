@@ -16,6 +16,7 @@ from models.checkpoint import save_checkpoint
 from models.featurenet import FeatureNet
 from profiles import load_profile
 from toolkit.cli import main
+from toolkit.compression.report import ort_session
 from vo_runtime import ArtefactError, FeatureExtractor
 from vo_runtime.artefact import sha256_file
 
@@ -201,7 +202,7 @@ def test_tx2_graph_survives_every_layer_in_fp16(tmp_path, size):
     assert main(["export", "--target", "tx2", "--input-size", size, "-o", str(out)]) == 0
     _, model = read(out)
     half = convert_float_to_float16(onnx.load(str(out / "model.onnx")), keep_io_types=True, op_block_list=[])
-    sessions = [ort_cpu(m) for m in (model, half)]
+    sessions = [ort_session(m) for m in (model, half)]
     height, width = (int(v) for v in size.split("x"))
     image = cv2.imread(str(Path(__file__).parents[1] / "export" / "parity_images" / "hopper.png"), cv2.IMREAD_GRAYSCALE)
     feed = {"image": (cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA) / 255.0).astype(np.float32)[None, None]}
@@ -214,8 +215,3 @@ def test_tx2_graph_survives_every_layer_in_fp16(tmp_path, size):
     assert found.mean() >= 0.97
     assert np.median(np.sum(d32[found] * d16[nearest[found]], axis=1)) >= 0.99
 
-
-def ort_cpu(model: onnx.ModelProto):
-    import onnxruntime as ort
-
-    return ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
