@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from models.keypoints import border_mask, extract_keypoints, heatmap_from_logits
+from models.keypoints import border_mask, extract_keypoints, heatmap_from_logits, keypoint_heads
 
 KEYPOINT_OUTPUTS = ("keypoints", "scores", "descriptors", "num_valid")
 DENSE_OUTPUTS = ("heatmap", "descriptors_coarse")
@@ -29,10 +29,10 @@ class KeypointGraph(nn.Module):
         self.register_buffer("border_weights", border_mask(height, width, border, torch.zeros(1)), persistent=False)
 
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        heads = self.net(image)
+        logits, descriptors, projection = keypoint_heads(self.net, image)
         out = extract_keypoints(
-            heads["logits"], heads["descriptors"], self.max_keypoints, self.nms_radius, self.threshold,
-            self.border, self.border_weights,
+            logits, descriptors, self.max_keypoints, self.nms_radius, self.threshold, self.border,
+            self.border_weights, projection=projection,
         )
         return tuple(out[name] for name in KEYPOINT_OUTPUTS)
 

@@ -99,12 +99,34 @@ def _channels_after(cfg: FeatureNetConfig, scale: int) -> int:
     return channels
 
 
+class CellContrast(nn.Module):
+    """Each 8x8 cell's pixels as channels, zero mean and unit contrast per cell.
+
+    image [B, 1, H, W] -> [B, 64, H/8, W/8], channel dy*8 + dx. One 8x8 stride-8 conv with a fixed kernel
+    (I - 1/64: each output channel picks one pixel of the cell and subtracts the cell's mean) and a 1x1
+    conv with weights 1/64 (the mean square) replace the 5-D Transpose that gathers a cell's pixels
+    (0.57 against 0.91 ms for the whole cell-pixel head in onnxruntime, 240x320, one thread), same values
+    to float rounding. Its convs hold fixed kernels on raw pixel differences and must stay float when a
+    graph is quantised (`toolkit quantise` keeps every Conv under this module's scope float).
+    """
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        count = CELL * CELL
+        pick = torch.eye(count, dtype=image.dtype, device=image.device)
+        centred = F.conv2d(image, (pick - 1.0 / count).reshape(count, 1, CELL, CELL), stride=CELL)
+        mean_of_squares = torch.full((1, count, 1, 1), 1.0 / count, dtype=image.dtype, device=image.device)
+        variance = F.conv2d(centred * centred, mean_of_squares)
+        return centred / torch.sqrt(variance + 1e-4)
+
+
 class CellPixelHead(nn.Module):
     """Keypoint logits from each 8x8 cell's own pixels. image [B, 1, H, W] -> [B, 65, H/8, W/8].
 
     The 64 pixels of a cell become 64 channels (order dy*8 + dx, as the detector's pixel_shuffle), are
     normalised to zero mean and unit contrast per cell (so dark and bright cells look alike), then pass
-    through 1x1 convs. Reshape/Transpose only: both export targets run it.
+    through 1x1 convs. ``cells_by_conv`` gathers the cells with `CellContrast` (the inference graphs);
+    training and pruning trace the Reshape/Transpose path, whose layers they know. Both export targets
+    run either.
     """
 
     def __init__(self, channels: int, activation: str) -> None:
@@ -114,11 +136,14 @@ class CellPixelHead(nn.Module):
             nn.Conv2d(channels, channels, 1, bias=False), nn.BatchNorm2d(channels), make_activation(activation),
             nn.Conv2d(channels, CELL * CELL + 1, 1),
         )
+        self.cell_contrast = CellContrast()  # no parameters: the checkpoint format is unchanged
         # Starts silent: an untrained head leaves the detector's logits unchanged.
         nn.init.zeros_(self.layers[-1].weight)
         nn.init.zeros_(self.layers[-1].bias)
 
-    def forward(self, image: torch.Tensor) -> torch.Tensor:
+    def forward(self, image: torch.Tensor, cells_by_conv: bool = False) -> torch.Tensor:
+        if cells_by_conv:
+            return self.layers(self.cell_contrast(image))
         batch, _, height, width = image.shape
         h, w = height // CELL, width // CELL
         cells = image.reshape(batch, h, CELL, w, CELL).permute(0, 2, 4, 1, 3).reshape(batch, CELL * CELL, h, w)
@@ -170,18 +195,49 @@ class FeatureNet(nn.Module):
             self.pixel_head = CellPixelHead(cfg.pixel_head_channels, act)
 
     def backbone(self, image: torch.Tensor) -> torch.Tensor:
-        """image [B, 1, H, W] -> shared features [B, C, H/8, W/8]."""
-        x = self.stem(image)
+        """image [B, 1, H, W] -> shared features [B, C, H/8, W/8].
+
+        When no block runs at full resolution, the stem's activation runs after the first max-pool: a
+        monotonic activation commutes with max, so the result is the same on a quarter of the pixels, and
+        the stem conv can stay in float in an INT8 graph while the pool runs in onnxruntime's fast float
+        layout (a float stem followed by a quantised ReLU made onnxruntime run an 8-bit NCHW MaxPool,
+        3.8 ms of an 8 ms graph).
+        """
+        conv, norm, activation = self.stem
+        x = norm(conv(image))
+        deferred = not self.config.blocks[0]
+        if not deferred:
+            x = activation(x)
         for scale, stage in enumerate(self.stages):
-            x = stage(x)
+            if deferred and scale == 1:
+                x = stage[1:](activation(stage[0](x)))  # stage[0] is the max-pool
+            else:
+                x = stage(x)
             if self.config.deformable and scale == self.config.deform_scale:
                 x = self.deform_act(self.deform_bn(self.deform(x)))
         return x
 
-    def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(self, image: torch.Tensor, for_keypoints: bool = False) -> dict[str, torch.Tensor]:
+        """The heads; ``for_keypoints`` returns them as keypoint extraction needs them, cheaper.
+
+        With ``for_keypoints``, "descriptors" is replaced by "descriptor_features" [B, C, h, w]: the
+        descriptor head before its final 1x1 conv, which `models.keypoints.sample_descriptors` applies
+        (`descriptor_projection`) after bilinear sampling, at the K keypoints only. Both steps are linear,
+        so their order does not change the sampled vector; only the L2 normalisation moves from the four
+        cell corners to the sampled point (identical at cell centres). This skips normalising the dense map
+        and, when K is below the cell count, most of a 128 -> 256 conv; the cell-pixel head gathers its
+        cells by conv. Used by the inference graphs and `toolkit eval`; training uses the dense heads.
+        """
         features = self.backbone(image)
-        descriptors = unit_rows(self.descriptor(features))
         logits = self.detector(features)
         if self.config.pixel_head_channels:
-            logits = logits + self.pixel_head(image)
-        return {"logits": logits, "descriptors": descriptors}
+            logits = logits + self.pixel_head(image, cells_by_conv=for_keypoints)
+        if for_keypoints:
+            return {"logits": logits, "descriptor_features": self.descriptor[:-1](features)}
+        return {"logits": logits, "descriptors": unit_rows(self.descriptor(features))}
+
+    def descriptor_projection(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The descriptor head's final 1x1 conv as (weight [D, C], bias [D]), for `models.keypoints.keypoint_heads`."""
+        conv = self.descriptor[-1]
+        return conv.weight.reshape(conv.out_channels, conv.in_channels), conv.bias
+

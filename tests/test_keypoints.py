@@ -18,6 +18,24 @@ def test_heatmap_places_each_cell_channel_at_its_pixel():
     assert divmod(peak, 32) == (1 * 8 + 5, 2 * 8 + 3)
 
 
+def test_heatmap_equals_softmax_then_pixel_shuffle():
+    logits = torch.randn(2, 65, 5, 7) * 4
+    reference = torch.nn.functional.pixel_shuffle(torch.softmax(logits, dim=1)[:, :-1], 8)
+    assert torch.allclose(heatmap_from_logits(logits), reference, rtol=1e-6, atol=1e-8)
+
+
+def test_projection_after_sampling_equals_sampling_the_projected_map():
+    # A 1x1 conv is linear and bilinear weights sum to one, so projecting K samples equals sampling the
+    # projected map; only where the normalisation happens differs, which the unnormalised map removes.
+    features = torch.randn(16, 3, 4)
+    weight, bias = torch.randn(32, 16), torch.randn(32)
+    projected = torch.einsum("dc,chw->dhw", weight, features) + bias[:, None, None]
+    keypoints = torch.tensor([[5.0, 6.0], [19.5, 11.5], [13.25, 17.75], [30.0, 22.0]])
+    sparse = sample_descriptors(features, keypoints, (weight, bias))
+    assert sparse.shape == (4, 32)
+    assert torch.allclose(sparse, sample_descriptors(projected, keypoints), atol=1e-5)
+
+
 def test_nms_keeps_local_maxima_only():
     heat = torch.zeros(1, 1, 20, 20)
     heat[0, 0, 5, 5], heat[0, 0, 6, 6], heat[0, 0, 15, 15] = 0.9, 0.5, 0.4

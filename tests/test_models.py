@@ -9,9 +9,11 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from models.featurenet import FeatureNet, FeatureNetConfig
+from models.weights import shipped_checkpoint
 from models.superpoint import SuperPointNet, load_superpoint_v1
 
 torch.set_num_threads(1)
+DEFAULT_RELU = shipped_checkpoint("featurenet-relu")
 
 
 def macs_at(model: torch.nn.Module, height: int, width: int) -> float:
@@ -45,6 +47,29 @@ def test_featurenet_outputs_and_activation_variant():
         assert ("ELU" in kinds) == (activation == "elu")
     with pytest.raises(ValueError):
         FeatureNetConfig(activation="gelu")
+
+
+def test_keypoint_heads_match_the_training_heads():
+    # The inference path (cells gathered by convs, descriptor projection deferred to the keypoints, stem
+    # activation after the first max-pool) must compute what the training path computes, on a trained net
+    # whose BN statistics and weights are far from their initial values.
+    from models.keypoints import keypoint_heads, sample_descriptors
+
+    net, _ = load_checkpoint(DEFAULT_RELU)
+    net.eval()
+    image = torch.rand(1, 1, 96, 128)
+    image[..., :40, :48] = 0.5  # flat cells: contrast normalisation at its most fragile
+    with torch.no_grad():
+        dense = net(image)
+        logits, features, projection = keypoint_heads(net, image)
+        stem_then_pool = net.stages[1][0](net.stem(image))  # the order training has always used
+        pool_then_activation = net.stem[2](net.stages[1][0](net.stem[1](net.stem[0](image))))
+    assert torch.equal(stem_then_pool, pool_then_activation)
+    assert torch.allclose(logits, dense["logits"], atol=1e-4)
+    # At cell centres the deferred projection gives the dense descriptor exactly (bilinear weight 1).
+    centres = torch.tensor([[3.5, 3.5], [19.5, 11.5], [123.5, 91.5]])
+    expected = torch.stack([dense["descriptors"][0, :, int(y) // 8, int(x) // 8] for x, y in centres.tolist()])
+    assert torch.allclose(sample_descriptors(features[0], centres, projection), expected, atol=1e-5)
 
 
 def magic_leap_state_dict(seed: int) -> dict[str, torch.Tensor]:

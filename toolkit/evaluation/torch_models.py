@@ -25,7 +25,7 @@ def detect_with_network(model: nn.Module, gray: np.ndarray, config: DetectorConf
     Images whose sides are not multiples of 8 are zero-padded at the bottom/right; keypoints in the padding
     or within ``config.border`` px of the real image edge are dropped.
     """
-    from models.keypoints import extract_keypoints
+    from models.keypoints import extract_keypoints, keypoint_heads
 
     height, width = gray.shape
     tensor = torch.from_numpy(gray).float().div_(255.0)[None, None]
@@ -33,10 +33,10 @@ def detect_with_network(model: nn.Module, gray: np.ndarray, config: DetectorConf
     if pad_bottom or pad_right:
         tensor = F.pad(tensor, (0, pad_right, 0, pad_bottom))
     with torch.inference_mode():
-        heads = model(tensor)
+        logits, descriptors, projection = keypoint_heads(model, tensor)
         budget = min(config.max_keypoints, tensor.shape[2] * tensor.shape[3])
-        output = extract_keypoints(heads["logits"], heads["descriptors"], budget, config.nms_radius,
-                                   config.detection_threshold, config.border)
+        output = extract_keypoints(logits, descriptors, budget, config.nms_radius, config.detection_threshold,
+                                   config.border, projection=projection)
     count = int(output["num_valid"][0])
     keypoints = output["keypoints"][:count].numpy().astype(np.float32)
     scores = output["scores"][:count].numpy().astype(np.float32)
