@@ -18,7 +18,7 @@ from models.featurenet import FeatureNetConfig
 from toolkit.cli import main
 from toolkit.compression.images import load_images
 from toolkit.compression.proxy import calibrated_random_featurenet
-from toolkit.compression.sensitivity import head_output_convs, layer_sensitivity
+from toolkit.compression.sensitivity import conv_nodes, head_output_convs, layer_sensitivity
 from vo_runtime import FeatureExtractor
 from vo_runtime.artefact import verify_artefact
 
@@ -68,20 +68,24 @@ def test_int8_artefact_is_qdq_calibrated_and_runs(artefacts, shared_data, tmp_pa
     assert q["calibration"]["count"] == 4 and q["calibration"]["folder"] == str(calibration)
     assert len(q["calibration"]["images"]) == 4
     assert manifest["source_artefact"]["onnx_sha256"] == read(artefacts["x86-cpu"])[0]["onnx"]["sha256"]
-    # Sensitivity: one entry per quantisable conv, worst first; the two worst non-head convs stayed float.
+    # Sensitivity: one entry per conv with learned weights, worst first; the two worst others stayed float.
     _, fp32 = read(artefacts["x86-cpu"])
     errors = [item["relative_error"] for item in q["sensitivity"]]
-    assert len(errors) == sum(n.op_type == "Conv" for n in fp32.graph.node) and errors == sorted(errors, reverse=True)
-    heads = q["float_nodes"]["head_outputs"]
-    kept = q["float_nodes"]["sensitive"]
-    assert len(heads) == 3 and len(kept) == 2  # detector, descriptor and cell-pixel head outputs
-    assert not set(kept) & set(heads)
-    assert kept == [item["node"] for item in q["sensitivity"] if item["node"] not in heads][:2]
+    assert len(errors) == len(conv_nodes(fp32)) and errors == sorted(errors, reverse=True)
+    floats = q["float_nodes"]
+    heads, kept = floats["head_outputs"], floats["sensitive"]
+    assert len(heads) == 2 and all(n.endswith(("detector.1/Conv", "layers.6/Conv")) for n in heads)  # the logits
+    assert len(floats["fixed_kernels"]) == 2 and all("/cell_contrast/" in n for n in floats["fixed_kernels"])
+    assert len(floats["single_channel"]) == 1 and "stem" in floats["single_channel"][0]  # 1 -> 16 channels
+    always_float = heads + floats["fixed_kernels"] + floats["single_channel"]
+    assert len(kept) == 2 and not set(kept) & set(always_float)
+    assert kept == [item["node"] for item in q["sensitivity"] if item["node"] not in always_float][:2]
     made_by = producers(model)
-    convs = {node.name: node for node in model.graph.node if node.op_type == "Conv"}
+    convs = {node.name: node for node in model.graph.node if node.op_type in ("Conv", "Gemm")}
+    assert sum(node.op_type == "Gemm" for node in convs.values()) == 1  # the descriptor projection, quantised
     for name, node in convs.items():
         weight_is_dequantised = node.input[1] in made_by and made_by[node.input[1]].op_type == "DequantizeLinear"
-        assert weight_is_dequantised == (name not in heads + kept), name
+        assert weight_is_dequantised == (name not in always_float + kept), name
     assert sum(node.op_type == "QuantizeLinear" for node in model.graph.node) > 0
     parity = q["parity_vs_fp32"]
     assert 0.0 < parity["keypoints_unchanged"] <= 1.0 and parity["descriptor_cosine"] > 0.9

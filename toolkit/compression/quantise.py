@@ -1,10 +1,12 @@
 """Quantising an exported artefact: INT8 (x86-cpu, onnxruntime static QDQ) or FP16 (weights in FP16).
 
-INT8 follows what measured well on this graph: only Conv and the ReLU after it are quantised (the
-deformable conv, ELU, softmax and top-K stay float; with ReLU included the Q/DQ pair sits after the ReLU,
-so the uint8 range is not half spent on negatives that ReLU discards), weights per output channel int8, activations uint8 from MinMax calibration
-on real images, and the two head output 1x1 convs stay float (their outputs feed a softmax threshold and
-an L2 normalisation). ``keep_sensitive`` also keeps the N convs with the largest isolated error in float.
+INT8 follows what measured well on this graph: only Conv, the ReLU after it and the descriptor projection
+(Gemm) are quantised (the deformable conv, ELU, softmax and top-K stay float; with ReLU included the Q/DQ
+pair sits after the ReLU, so the uint8 range is not half spent on negatives that ReLU discards), weights
+per output channel int8, activations uint8 from MinMax calibration on real images. Three kinds of conv stay
+float: the keypoint logits' output convs (they feed a softmax threshold), the fixed-kernel convs that
+normalise each cell's pixels, and the single-channel stem (slow as QLinearConv). ``keep_sensitive`` also
+keeps the N convs with the largest isolated error in float.
 The result is a new artefact directory with its own manifest; the FP32 artefact is not touched.
 """
 from __future__ import annotations
@@ -28,13 +30,15 @@ from toolkit import __version__
 from export.parity import SHIPPED_PARITY_DIR
 from toolkit.compression.images import load_images
 from toolkit.compression.report import interleaved_median_ms, ort_drift, ort_session
-from toolkit.compression.sensitivity import head_output_convs, layer_sensitivity
+from toolkit.compression.sensitivity import fixed_kernel_convs, head_output_convs, layer_sensitivity, single_channel_convs
 from toolkit.atomic import OutputKind, atomic_directory, check_output_dir
 from toolkit.errors import ToolkitError
 from vo_runtime.artefact import MANIFEST_NAME, MODEL_NAME, sha256_file, verify_artefact
 
 MODES = ("int8", "fp16")
-QUANTISED_OPS = ("Conv", "Relu")  # the default list also quantises the sampling arithmetic: ~8 % heatmap error
+# Gemm is the descriptor projection at the keypoints. The default list also quantises the sampling
+# arithmetic: ~8 % heatmap error.
+QUANTISED_OPS = ("Conv", "Relu", "Gemm")
 SENSITIVITY_IMAGES = 8  # isolated per-layer errors settle after a few images
 
 
@@ -157,16 +161,18 @@ def quantise_artefact(options: QuantiseOptions, log=print) -> Path:
         calibration, paths = load_images(folder, options.calibration_count, (height, width))
         log(f"calibrating on {len(paths)} images from {folder}")
         sensitivity = layer_sensitivity(model, calibration[:SENSITIVITY_IMAGES])
-        heads = head_output_convs(model)
-        candidates = [item.node for item in sensitivity if item.node not in heads]
+        float_nodes = {"head_outputs": head_output_convs(model), "fixed_kernels": fixed_kernel_convs(model),
+                       "single_channel": single_channel_convs(model)}
+        always_float = [name for names in float_nodes.values() for name in names]
+        candidates = [item.node for item in sensitivity if item.node not in always_float]
         kept = candidates[: options.keep_sensitive]
-        quantised = quantise_int8(model, calibration, heads + kept)
+        quantised = quantise_int8(model, calibration, always_float + kept)
         precision_applied = "onnx-int8-qdq"
         details.update({
             "scheme": f"static QDQ of {'+'.join(QUANTISED_OPS)}, per-channel int8 weights, uint8 activations, MinMax",
             "calibration": {"folder": str(folder), "count": len(paths), "requested": options.calibration_count,
                             "images": [str(p.relative_to(folder)) for p in paths]},
-            "float_nodes": {"head_outputs": heads, "sensitive": kept},
+            "float_nodes": {**float_nodes, "sensitive": kept},
             "sensitivity": [item.to_dict() for item in sensitivity],
             "sensitivity_images": min(len(paths), SENSITIVITY_IMAGES),
         })

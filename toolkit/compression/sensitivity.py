@@ -35,28 +35,54 @@ def conv_nodes(model: onnx.ModelProto) -> list[onnx.NodeProto]:
     return [node for node in model.graph.node if node.op_type == "Conv" and node.input[1] in weights]
 
 
+def fixed_kernel_convs(model: onnx.ModelProto) -> list[str]:
+    """Names of the convs inside `models.featurenet.CellContrast`: fixed kernels on raw pixel differences
+    and their squares, where uint8 steps would erase a dark cell's contrast. They stay in float."""
+    return [node.name for node in model.graph.node if node.op_type == "Conv" and "/cell_contrast/" in node.name]
+
+
+def single_channel_convs(model: onnx.ModelProto) -> list[str]:
+    """Names of dense convs reading one input channel (the stem on the gray image). onnxruntime's
+    QLinearConv is slow there: 2.0 ms against 0.3 ms in float for the 1 -> 16 stem at 240x320, more than
+    every other conv gains together. They stay in float."""
+    weights = {init.name: init for init in model.graph.initializer}
+    found = []
+    for node in conv_nodes(model):
+        group = next((int(a.i) for a in node.attribute if a.name == "group"), 1)
+        if group == 1 and weights[node.input[1]].dims[1] == 1:
+            found.append(node.name)
+    return found
+
+
 def head_output_convs(model: onnx.ModelProto) -> list[str]:
-    """Names of Conv nodes with no Conv/DeformConv downstream: the 1x1 convs making the 65 logits and the
-    descriptors. Their outputs are compared against thresholds and normalised, so they stay in float."""
+    """Names of the convs that end a head, which stay in float: those whose output reaches a Softmax before
+    any other learned layer (the 1x1 convs making the 65 keypoint logits, which a softmax turns into scores
+    compared against a threshold), and those with no learned layer (Conv, DeformConv, Gemm, MatMul with
+    weights) downstream at all (a dense graph's descriptor conv, whose output is normalised). The
+    descriptor head's last conv in a keypoint graph runs as a Gemm at the keypoints and is quantised."""
     consumers: dict[str, list[onnx.NodeProto]] = {}
     for node in model.graph.node:
         for name in node.input:
             consumers.setdefault(name, []).append(node)
-    terminal = []
+    weights = {init.name for init in model.graph.initializer}
+
+    def learned(node: onnx.NodeProto) -> bool:
+        return node.op_type in ("Conv", "DeformConv", "Gemm") or (node.op_type == "MatMul" and node.input[1] in weights)
+
+    ends = []
     for conv in conv_nodes(model):
-        stack, seen, feeds_conv = list(conv.output), set(), False
-        while stack and not feeds_conv:
-            name = stack.pop()
-            for node in consumers.get(name, []):
-                if node.op_type in ("Conv", "DeformConv"):
-                    feeds_conv = True
-                    break
-                if id(node) not in seen:
+        stack, seen, feeds_learned, reaches_softmax = list(conv.output), set(), False, False
+        while stack:
+            for node in consumers.get(stack.pop(), []):
+                if learned(node):
+                    feeds_learned = True
+                elif id(node) not in seen:
                     seen.add(id(node))
+                    reaches_softmax |= node.op_type == "Softmax"
                     stack.extend(node.output)
-        if not feeds_conv:
-            terminal.append(conv.name)
-    return terminal
+        if reaches_softmax or not feeds_learned:
+            ends.append(conv.name)
+    return ends
 
 
 def _attributes(node: onnx.NodeProto) -> dict:
