@@ -22,6 +22,7 @@ from export.parity import MIN_PARITY_KEYPOINTS, default_parity_paths, images_in,
 from export.readme import artefact_readme
 from models.checkpoint import load_checkpoint
 from models.deform import set_deform_strategy
+from models.featurenet import set_elu_form
 from profiles import TargetProfile, load_profile
 from toolkit import __version__
 from toolkit.atomic import OutputKind, atomic_directory, check_output_dir
@@ -108,6 +109,7 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
 
     net, info = load_checkpoint(resolve_checkpoint(options.checkpoint))
     set_deform_strategy(net, "native" if profile.deform_strategy == "native" else "torch")
+    set_elu_form(net, "max_exp" if profile.runtime.startswith("onnxruntime") else "native")
     torch.manual_seed(0)
 
     keypoint_module = KeypointGraph(net, height, width, max_keypoints, options.nms_radius, options.threshold, options.border).eval()

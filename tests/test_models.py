@@ -8,7 +8,7 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from models.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from models.featurenet import FeatureNet, FeatureNetConfig
+from models.featurenet import ELU, FeatureNet, FeatureNetConfig, set_elu_form
 from models.weights import shipped_checkpoint
 from models.superpoint import SuperPointNet, load_superpoint_v1
 
@@ -47,6 +47,23 @@ def test_featurenet_outputs_and_activation_variant():
         assert ("ELU" in kinds) == (activation == "elu")
     with pytest.raises(ValueError):
         FeatureNetConfig(activation="gelu")
+
+
+def test_elu_max_exp_form_equals_elu():
+    model = FeatureNet(FeatureNetConfig(activation="elu")).eval()
+    image = torch.rand(1, 1, 64, 96)
+    with torch.no_grad():
+        native = model(image)
+        set_elu_form(model, "max_exp")
+        rewritten = model(image)
+    assert torch.allclose(native["logits"], rewritten["logits"], atol=1e-5)
+    rewritten_elu = ELU()
+    rewritten_elu.form = "max_exp"
+    x = torch.linspace(-30, 30, 10001)
+    assert torch.allclose(rewritten_elu(x), torch.nn.functional.elu(x), atol=1e-7)
+    assert all(m.form == "max_exp" for m in model.modules() if isinstance(m, ELU))
+    with pytest.raises(ValueError):
+        set_elu_form(model, "fast")
 
 
 def test_keypoint_heads_match_the_training_heads():

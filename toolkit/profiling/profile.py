@@ -15,6 +15,7 @@ from tqdm import tqdm
 from export.graphs import DENSE_OUTPUTS, KEYPOINT_OUTPUTS, DenseGraph, KeypointGraph
 from export.onnx_export import export_onnx
 from models.deform import set_deform_strategy
+from models.featurenet import set_elu_form
 from profiles import TargetProfile
 from toolkit import __version__
 from toolkit.profiling.counts import LayerCost, fvcore_count, onnx_layer_costs, parameter_count
@@ -51,6 +52,7 @@ def target_graph(source: ModelSource, profile: TargetProfile, height: int, width
         model = source.artefact_model()
         return TargetGraph(profile.name, model, onnx_layer_costs(model), True)
     set_deform_strategy(source.net, "native" if profile.deform_strategy == "native" else "torch")
+    set_elu_form(source.net, "max_exp" if profile.runtime.startswith("onnxruntime") else "native")
     module = graph_module(source, height, width, profile.default_max_keypoints)
     outputs = DENSE_OUTPUTS if source.artefact_dense else KEYPOINT_OUTPUTS
     exported = export_onnx(module, torch.zeros(1, 1, height, width), profile.max_opset, outputs).model
