@@ -14,9 +14,10 @@ EXAMPLES = """examples:
       --keep-sensitive 3 -o out/cpu-int8-k3
   toolkit quantise --artefact out/tx2-fp32 --mode fp16 -o out/tx2-fp16
 
-int8 (x86-cpu only; the TX2 has no fast INT8 and is refused): onnxruntime static quantisation, QDQ, Conv
-nodes only, per-channel int8 weights, uint8 activations calibrated (MinMax) on real images; the head output
-convs stay float. A sensitivity pass reports each conv's isolated INT8 error; --keep-sensitive N keeps the N
+int8 (x86-cpu only; the TX2 has no fast INT8 and is refused): onnxruntime static quantisation, QDQ of the
+convs and the descriptor projection, per-channel int8 weights, uint8 activations calibrated (99.99th
+percentile) on real images; the keypoint-logit convs, the cell-contrast convs and the one-channel stem
+stay float. A sensitivity pass reports each conv's isolated INT8 error; --keep-sensitive N keeps the N
 worst in float. ELU does not quantise in onnxruntime: export a ReLU checkpoint (activation relu) for the
 fast INT8 path. fp16: weights and arithmetic in FP16, inputs/outputs FP32, checked against the profile.
 The new manifest records precision, calibration set and count, and parity and latency against FP32.
