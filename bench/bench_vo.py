@@ -5,7 +5,7 @@ pose and mapping.
     python bench/bench_vo.py --artefact out/cpu   # ... plus another exported network artefact
 
 Every extractor runs the same frames (KITTI 07, resized to 320x240 with the camera scaled to match) in one
-process, one after the other, with onnxruntime and OpenCV on one thread; ``--repeat`` runs each that many
+process, one after the other, with onnxruntime, OpenCV and numpy's BLAS on one thread; ``--repeat`` runs each that many
 times and keeps the fastest run (the least disturbed by other jobs). Times exclude reading frames from disk
 (frames are decoded and resized before the clock starts). Columns, per frame: ``fps`` over the whole
 pipeline; ``extract`` the extractor; ``track`` everything else (median and p95), of which ``match``
@@ -22,6 +22,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
@@ -60,6 +61,7 @@ def main() -> int:
     parser.add_argument("--repeat", type=int, default=3, help="runs per extractor; the fastest is reported")
     args = parser.parse_args()
     cv2.setNumThreads(1)
+    threadpool_limits(limits=1, user_api="blas")  # as `python -m vo_runtime` does by default (--blas-threads)
     sequence = open_sequence(args.sequence)
     frames = [cv2.resize(im, SIZE, interpolation=cv2.INTER_AREA) for im in read_frames(sequence.frames[: args.frames])]
     height, width = next(read_frames(sequence.frames[:1])).shape[:2]

@@ -189,8 +189,10 @@ def test_sequence_listing_and_timestamps(tmp_path, shared_data):
 
 
 # ---------------------------------------------------------------------------------------------- bundle adjustment
-def test_bundle_adjustment_reduces_pose_and_point_error():
+@pytest.mark.parametrize("solver", ["scipy", "schur"])
+def test_bundle_adjustment_reduces_pose_and_point_error(solver):
     from vo_runtime.bundle import bundle_adjust
+    from vo_runtime.schur import schur_bundle_adjust
 
     rng = np.random.default_rng(0)
     truth = np.c_[rng.uniform(-5, 5, 200), rng.uniform(-2, 2, 200), rng.uniform(8, 30, 200)]
@@ -204,7 +206,8 @@ def test_bundle_adjustment_reduces_pose_and_point_error():
     for p in noisy_poses[2:]:  # the first two are fixed: they set the gauge and the scale
         p[:3, 3] += rng.normal(scale=0.05, size=3)
     noisy_points = truth + rng.normal(scale=0.2, size=truth.shape)
-    result = bundle_adjust(noisy_poses, 2, noisy_points, frames, points, observed, focal=500.0)
+    adjust = bundle_adjust if solver == "scipy" else schur_bundle_adjust  # the local BA's own solver
+    result = adjust(noisy_poses, 2, noisy_points, frames, points, observed, focal=500.0)
     def pose_error(ps):
         return np.mean([np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(ps[2:], poses[2:])])
     assert result.final_cost < 0.01 * result.initial_cost
@@ -214,3 +217,12 @@ def test_bundle_adjustment_reduces_pose_and_point_error():
     point_error = np.median(np.linalg.norm(result.points - truth, axis=1))
     assert point_error < 0.8 * np.median(np.linalg.norm(noisy_points - truth, axis=1))
     np.testing.assert_array_equal(result.poses_cw[0], noisy_poses[0])
+
+
+def test_schur_point_block_inverse_matches_numpy():
+    from vo_runtime.schur import _inverse_3x3
+
+    rng = np.random.default_rng(3)
+    blocks = rng.normal(size=(50, 3, 3))
+    blocks = blocks @ blocks.transpose(0, 2, 1) + 1e-3 * np.eye(3)  # symmetric positive definite, as in BA
+    np.testing.assert_allclose(_inverse_3x3(blocks), np.linalg.inv(blocks), rtol=1e-7, atol=1e-9)

@@ -13,6 +13,7 @@ from typing import Any, Iterator
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from vo_runtime.artefact import default_artefact
 from vo_runtime.clitools import OneLineArgumentParser, run_guarded
@@ -66,6 +67,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", type=Path, help="output directory (written as a whole)")
     parser.add_argument("--force", action="store_true", help="replace an earlier vo run in the output directory")
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads (default 1)")
+    parser.add_argument("--blas-threads", type=int, default=1,
+                        help="numpy's BLAS threads for the geometry (default 1: its matrices are small, and BLAS "
+                             "threads spinning against the network or another process cost more than they give)")
     parser.add_argument("--providers", default="auto",
                         help="onnxruntime execution providers: auto (default: the best available of tensorrt, cuda, "
                         "cpu) or a list such as cuda,cpu; a missing one is an error")
@@ -102,6 +106,8 @@ def _check_options(args: argparse.Namespace) -> None:
     """Refuse out-of-range numbers before anything is read or written."""
     if args.threads < 1:
         raise VORuntimeError(f"--threads must be at least 1, got {args.threads}")
+    if args.blas_threads < 1:
+        raise VORuntimeError(f"--blas-threads must be at least 1, got {args.blas_threads}")
     least = VOConfig().min_features  # fewer features per frame can never be tracked
     if not least <= args.max_keypoints <= MAX_ORB_KEYPOINTS:
         raise VORuntimeError(f"--max-keypoints must be between {least} (the VO needs {least} features a frame) "
@@ -165,8 +171,9 @@ def run(args: argparse.Namespace) -> int:
                  else FeatureExtractor(args.artefact, threads=args.threads, providers=providers))
     _warn_on_squeezed_frames(extractor, sequence.camera, frames)
     vo = VisualOdometry(extractor, sequence.camera)
-    for index, path in enumerate(_progress(iter(frames), len(frames), not args.no_progress)):
-        _track_file(vo, path, sequence.timestamps[index], lowlight, index)
+    with threadpool_limits(limits=args.blas_threads, user_api="blas"):
+        for index, path in enumerate(_progress(iter(frames), len(frames), not args.no_progress)):
+            _track_file(vo, path, sequence.timestamps[index], lowlight, index)
     used = [r for r in vo.results if r.status != SKIPPED]
     skipped = [r for r in vo.results if r.status == SKIPPED]
     if not used:

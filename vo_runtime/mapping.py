@@ -48,7 +48,10 @@ class MappingConfig:
     ba_keyframes: int = 5                # free keyframes in the local bundle adjustment (0: none)
     ba_fixed_keyframes: int = 3          # at most this many fixed keyframes beside them
     ba_max_points: int = 600
-    ba_iterations: int = 10              # Levenberg-Marquardt steps at most
+    ba_iterations: int = 10              # Levenberg-Marquardt steps at most ...
+    # ... or until a step lowers the robust cost by less than this share. 1e-3 instead of 1e-6 cut the
+    # adjustment's time by a third on KITTI 07 (10.7 -> 6.9 ms per keyframe) for a final cost 0.002 % higher.
+    ba_min_decrease: float = 1e-3
     ba_huber_px: float = 2.5             # residuals beyond this weigh linearly, not quadratically
     ba_gate_px: float = 12.0             # observations further off are left out of the adjustment
     ba_cull_px: float = 4.0              # ... and those still further off than this afterwards are dropped
@@ -176,7 +179,8 @@ def local_bundle_adjustment(local_map: LocalMap, number: int, config: MappingCon
     if np.count_nonzero(keep) < 20:
         return []
     result = schur_bundle_adjust(poses, len(fixed), world, frames[keep], points[keep], xy[keep], focal,
-                                 iterations=config.ba_iterations, huber_px=config.ba_huber_px)
+                                 iterations=config.ba_iterations, huber_px=config.ba_huber_px,
+                                 min_decrease=config.ba_min_decrease)
     for k, pose in zip(window[len(fixed):], result.poses_cw[len(fixed):]):
         local_map.keyframes[k].pose_cw = pose
     adjusted = np.unique(points[keep])

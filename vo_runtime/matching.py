@@ -97,7 +97,10 @@ def match_epipolar(points_a: np.ndarray, desc_a: np.ndarray, points_b: np.ndarra
         return np.empty((0, 2), dtype=np.int64)
     lines = np.c_[points_a, np.ones(len(points_a))] @ essential.T  # epipolar lines in b, [Na, 3]
     lines /= np.linalg.norm(lines[:, :2], axis=1, keepdims=True) + 1e-30
-    error = np.abs(lines[:, :2] @ points_b.T + lines[:, 2:3])   # [Na, Nb] point-to-line distances
+    # [Na, Nb] point-to-line distances as one float32 product with homogeneous points: OpenBLAS took ~4 ms
+    # for the float64 [Na, 2] x [2, Nb] product at 700 x 700, this ~0.2 ms (float32 is ample for a gate of
+    # a few pixels in normalised units).
+    error = lines.astype(np.float32) @ np.c_[points_b, np.ones(len(points_b))].astype(np.float32).T
     sim = np.asarray(desc_a, np.float32) @ np.asarray(desc_b, np.float32).T
-    sim[error > max_error] = -np.inf
+    sim[np.abs(error, out=error) > max_error] = -np.inf
     return mutual_best(sim, max_distance, ratio)

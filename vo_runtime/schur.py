@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from scipy import sparse
 
 from vo_runtime.bundle import BundleResult
 from vo_runtime.geometry import make_pose
@@ -23,11 +24,33 @@ def _project(poses: list[np.ndarray], points: np.ndarray, frame: np.ndarray, poi
     return cam, rotations
 
 
-def _accumulate(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
-    """Sum ``values`` [K, ...] into ``size`` bins by ``index`` [K] (np.add.at, but by bincount: ~10x faster)."""
-    flat = values.reshape(len(values), -1)
-    sums = np.stack([np.bincount(index, weights=flat[:, j], minlength=size) for j in range(flat.shape[1])], axis=1)
-    return sums.reshape((size,) + values.shape[1:])
+EYE3, EYE6 = np.eye(3), np.eye(6)
+
+
+def _inverse_3x3(matrices: np.ndarray) -> np.ndarray:
+    """Inverses of [M, 3, 3] matrices by their adjugates: numpy's batched LAPACK inverse spent more time per
+    3x3 block in call overhead than in arithmetic (0.23 against 0.03 ms for 500 blocks). The blocks are
+    the damped, regularised point blocks of the normal equations, symmetric positive definite."""
+    a, b, c = matrices[:, 0, 0], matrices[:, 0, 1], matrices[:, 0, 2]
+    d, e, f = matrices[:, 1, 0], matrices[:, 1, 1], matrices[:, 1, 2]
+    g, h, i = matrices[:, 2, 0], matrices[:, 2, 1], matrices[:, 2, 2]
+    adjugate = np.stack([e * i - f * h, c * h - b * i, b * f - c * e,
+                         f * g - d * i, a * i - c * g, c * d - a * f,
+                         d * h - e * g, b * g - a * h, a * e - b * d], axis=1).reshape(-1, 3, 3)
+    determinant = a * adjugate[:, 0, 0] + b * adjugate[:, 1, 0] + c * adjugate[:, 2, 0]
+    return adjugate / determinant[:, None, None]
+
+
+def _summing_matrix(index: np.ndarray, size: int) -> sparse.csr_matrix:
+    """[size, K] 0/1 matrix whose product with values [K, ...] sums them into ``size`` bins by ``index`` [K].
+    Built once per adjustment; one sparse product per block replaces a bincount per matrix entry (3x
+    faster over an adjustment's 70 entries)."""
+    return sparse.csr_matrix((np.ones(len(index)), (index, np.arange(len(index)))), shape=(size, len(index)))
+
+
+def _accumulate(summing: sparse.csr_matrix, values: np.ndarray) -> np.ndarray:
+    """Sum ``values`` [K, ...] into bins with a `_summing_matrix`: [size, ...]."""
+    return (summing @ values.reshape(len(values), -1)).reshape((summing.shape[0],) + values.shape[1:])
 
 
 def _residuals(poses, points, frame, point, xy, focal) -> np.ndarray:
@@ -44,10 +67,11 @@ def _cost(res: np.ndarray, huber_px: float) -> float:
 
 def schur_bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.ndarray, obs_frame: np.ndarray,
                         obs_point: np.ndarray, obs_xy: np.ndarray, focal: float, iterations: int = 10,
-                        huber_px: float = 2.5) -> BundleResult:
+                        huber_px: float = 2.5, min_decrease: float = 1e-3) -> BundleResult:
     """Refine poses (all but the first ``n_fixed``) and points; arguments as `bundle.bundle_adjust`.
 
-    Points are expected to have at least two observations; ``iterations`` caps the LM steps tried.
+    Points are expected to have at least two observations; ``iterations`` caps the LM steps tried, and the
+    adjustment stops after a step that lowers the robust cost by less than ``min_decrease`` (relative).
     """
     poses = [p.copy() for p in poses_cw]
     points = points.copy()
@@ -58,6 +82,9 @@ def schur_bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.nda
     start_cost = float(np.sum(res ** 2))
     cost = _cost(res, huber_px)
     damping = 1e-3
+    by_point = _summing_matrix(obs_point, n_points)
+    by_pose = _summing_matrix(slot[free], n_free)
+    by_pose_point = _summing_matrix(obs_point[free] * n_free + slot[free], n_points * n_free)
     for _ in range(iterations):
         cam, rotations = _project(poses, points, obs_frame, obs_point)
         x, y, z = cam.T
@@ -74,25 +101,22 @@ def schur_bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.nda
         weight = np.where(norm <= huber_px, 1.0, huber_px / np.maximum(norm, 1e-12))   # Huber IRLS
         wj_pose = j_pose * weight[:, None, None]
         wj_point = j_point * weight[:, None, None]
-        h_ll = _accumulate(obs_point, wj_point.transpose(0, 2, 1) @ j_point, n_points)
-        b_l = _accumulate(obs_point, -(wj_point.transpose(0, 2, 1) @ res[:, :, None])[:, :, 0], n_points)
+        h_ll = _accumulate(by_point, wj_point.transpose(0, 2, 1) @ j_point)
+        b_l = _accumulate(by_point, -(wj_point.transpose(0, 2, 1) @ res[:, :, None])[:, :, 0])
         wj_free = wj_pose[free].transpose(0, 2, 1)
-        h_pp = _accumulate(slot[free], wj_free @ j_pose[free], n_free)
-        b_p = _accumulate(slot[free], -(wj_free @ res[free][:, :, None])[:, :, 0], n_free)
+        h_pp = _accumulate(by_pose, wj_free @ j_pose[free])
+        b_p = _accumulate(by_pose, -(wj_free @ res[free][:, :, None])[:, :, 0])
         # Dense over (point, free pose): both are small here.
-        h_pl = _accumulate(obs_point[free] * n_free + slot[free], wj_free @ j_point[free],
-                           n_points * n_free).reshape(n_points, n_free, 6, 3)
+        h_pl = _accumulate(by_pose_point, wj_free @ j_point[free]).reshape(n_points, n_free, 6, 3)
+        # Sums over points as one matrix product: rows (pose, axis), columns (point, axis).
+        h_flat = h_pl.transpose(1, 2, 0, 3).reshape(6 * n_free, 3 * n_points)
         improved = converged = False
         while not improved and damping < 1e8:
-            h_ll_damped = h_ll + damping * (h_ll * np.eye(3)) + 1e-9 * np.eye(3)
-            h_ll_inv = np.linalg.inv(h_ll_damped)
-            y_mat = h_pl @ h_ll_inv[:, None]                                      # [M, F, 6, 3]
-            # Sums over points as one matrix product: rows (pose, axis), columns (point, axis).
-            y_flat = y_mat.transpose(1, 2, 0, 3).reshape(6 * n_free, 3 * n_points)
-            h_flat = h_pl.transpose(1, 2, 0, 3).reshape(6 * n_free, 3 * n_points)
+            h_ll_inv = _inverse_3x3(h_ll + damping * (h_ll * EYE3) + 1e-9 * EYE3)
+            y_flat = (h_pl @ h_ll_inv[:, None]).transpose(1, 2, 0, 3).reshape(6 * n_free, 3 * n_points)
             reduced = np.zeros((n_free, 6, n_free, 6))
             for f in range(n_free):
-                reduced[f, :, f, :] = h_pp[f] + damping * (h_pp[f] * np.eye(6)) + 1e-9 * np.eye(6)
+                reduced[f, :, f, :] = h_pp[f] + damping * (h_pp[f] * EYE6) + 1e-9 * EYE6
             reduced -= (y_flat @ h_flat.T).reshape(n_free, 6, n_free, 6)
             rhs = b_p - (y_flat @ b_l.ravel()).reshape(n_free, 6)
             try:
@@ -109,7 +133,7 @@ def schur_bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.nda
             trial_cost = _cost(trial_res, huber_px)
             if trial_cost < cost:
                 poses, points, res, improved = trial_poses, trial_points, trial_res, True
-                converged = cost - trial_cost < 1e-6 * cost
+                converged = cost - trial_cost < min_decrease * cost
                 cost = trial_cost
                 damping = max(damping / 10, 1e-7)
             else:
