@@ -140,7 +140,7 @@ def _deform(inputs, outputs) -> int:
 ELEMENTWISE_ATEN = [
     "elu", "elu_", "relu", "relu_", "sigmoid", "sigmoid_", "add", "add_", "sub", "sub_", "rsub", "mul", "mul_",
     "div", "div_", "clamp", "clamp_", "clamp_min", "clamp_max", "floor", "eq", "gt", "lt", "ge", "le", "exp",
-    "sqrt", "neg", "abs", "where", "leaky_relu", "tanh",
+    "sqrt", "neg", "abs", "where", "leaky_relu", "tanh", "maximum", "minimum",
 ]
 
 
