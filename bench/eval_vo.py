@@ -66,6 +66,7 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, overr
         if light == "low":
             image = darken(to_gray_u8(image), *LOWLIGHT, seed=index)
         vo.track(image, sequence.timestamps[index])
+    vo.finish()  # a keyframe's mapping still on the worker thread (--set mapping_thread=true)
     results = vo.results
     states = [r.status for r in results]
     first = next((i for i, s in enumerate(states) if s not in (INITIALISING, SKIPPED)), len(states))

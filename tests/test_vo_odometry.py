@@ -248,3 +248,40 @@ def test_keyframes_follow_the_gap_and_the_view_change():
     eager = run(SyntheticExtractor(poses), 60, VOConfig(keyframe_max_gap=50, keyframe_track_ratio=0.95))
     eager_keyframes = [r.index for r in eager.results if r.keyframe]
     assert len(eager_keyframes) > 2 and np.diff(eager_keyframes).max() < 50
+
+
+def test_mapping_thread_gives_the_same_poses_as_inline_mapping(shared_data):
+    # The worker only runs between one frame's tracking and the next, so nothing may change but the time.
+    from vo_runtime.datasets import open_sequence
+    from vo_runtime.features import OrbExtractor
+    from vo_runtime.sequence import read_frames
+
+    sequence = open_sequence(shared_data / "kitti_odom06_f000000-000050")
+    frames = list(read_frames(sequence.frames[:30]))
+    poses = {}
+    for threaded in (False, True):
+        vo = MonoVO(OrbExtractor(1000), sequence.camera, VOConfig(mapping_thread=threaded))
+        for image, stamp in zip(frames, sequence.timestamps):
+            vo.process(image, stamp)
+            if len(vo.results) == 12:
+                vo.skip("a dropped frame")  # a skip waits for the worker too
+        vo.finish()
+        mapped = [r for r in vo.results if r.keyframe and r.tracked_by != "two-view"]  # not the map's first
+        assert len(mapped) >= 3 and all(r.mapping_ms > 0 for r in mapped)
+        poses[threaded] = np.stack([r.pose for r in vo.results])
+    np.testing.assert_array_equal(poses[True], poses[False])
+
+
+def test_a_failing_mapping_job_is_raised_on_the_next_frame():
+    from vo_runtime.background import Background
+
+    background = Background()
+
+    def fail() -> None:
+        raise ValueError("mapping failed")
+
+    background.submit(fail)
+    with pytest.raises(ValueError, match="mapping failed"):
+        background.wait()
+    assert background.wait() == 0.0  # nothing pending any more
+    background.close()

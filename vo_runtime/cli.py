@@ -67,6 +67,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", type=Path, help="output directory (written as a whole)")
     parser.add_argument("--force", action="store_true", help="replace an earlier vo run in the output directory")
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads (default 1)")
+    parser.add_argument("--mapping-thread", action="store_true",
+                        help="run each keyframe's mapping on a second thread, overlapping the next extraction "
+                             "(same poses; faster with a free core)")
     parser.add_argument("--blas-threads", type=int, default=1,
                         help="numpy's BLAS threads for the geometry (default 1: its matrices are small, and BLAS "
                              "threads spinning against the network or another process cost more than they give)")
@@ -170,10 +173,11 @@ def run(args: argparse.Namespace) -> int:
     extractor = (OrbExtractor(args.max_keypoints) if args.features == "orb"
                  else FeatureExtractor(args.artefact, threads=args.threads, providers=providers))
     _warn_on_squeezed_frames(extractor, sequence.camera, frames)
-    vo = VisualOdometry(extractor, sequence.camera)
+    vo = VisualOdometry(extractor, sequence.camera, VOConfig(mapping_thread=args.mapping_thread))
     with threadpool_limits(limits=args.blas_threads, user_api="blas"):
         for index, path in enumerate(_progress(iter(frames), len(frames), not args.no_progress)):
             _track_file(vo, path, sequence.timestamps[index], lowlight, index)
+        vo.finish()
     used = [r for r in vo.results if r.status != SKIPPED]
     skipped = [r for r in vo.results if r.status == SKIPPED]
     if not used:

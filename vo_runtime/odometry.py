@@ -34,6 +34,7 @@ from typing import Callable
 
 import numpy as np
 
+from vo_runtime.background import Background
 from vo_runtime.camera import Camera
 from vo_runtime.errors import CalibrationError, FrameError, VORuntimeError
 from vo_runtime.features import FeatureExtractor, Features, check_frame
@@ -78,6 +79,9 @@ class VOConfig:
     relocalise_keyframes: int = 5        # recent keyframes a lost frame tries to relocalise against (0: never)
     relocalise_frames: int = 3           # failed relocalisations before a fresh initialisation may start
     initial_baseline: float = 1.0        # length of the first baseline, in output units
+    # A keyframe's mapping on a second thread, overlapping the next frame's extraction (`background.py`):
+    # the same results, sooner; a keyframe's own pose is refined after `process` returns (call `finish`).
+    mapping_thread: bool = False
     mapping: MappingConfig = field(default_factory=MappingConfig)
 
     def __post_init__(self) -> None:
@@ -106,7 +110,8 @@ class VOResult:
     keyframe: bool = False  # became a keyframe (adds landmarks, runs the local bundle adjustment)
     problem: str | None = None  # why a skipped frame could not be used
     tracked_by: str | None = None  # local map | wide search | previous frame | relocalisation | two-view
-    mapping_ms: float = 0.0  # of track_ms: keyframe work (triangulation, bundle adjustment, culling)
+    mapping_ms: float = 0.0  # keyframe work (triangulation, bundle adjustment, culling): part of track_ms,
+    #                          or on the worker thread with VOConfig.mapping_thread
     match_ms: float = 0.0    # of track_ms: guided matching against the local map
     pose_ms: float = 0.0     # of track_ms: pose refinement on those matches
 
@@ -124,10 +129,13 @@ class MonoVO:
         self.extractor = extractor
         self.camera = camera
         self.config = config or VOConfig()
+        self._background = Background()
         self.reset()
 
     def reset(self) -> None:
         """Forget the map and the trajectory; the next frame becomes the origin."""
+        self._background.wait()
+        self._mapping_job: Callable[[], None] | None = None  # a keyframe's mapping, for the worker thread
         self.results: list[VOResult] = []
         self._poses_cw: list[np.ndarray] = []        # world-to-camera, one per processed frame
         self._anchors: dict[int, list[tuple[int, np.ndarray]]] = {}  # keyframe -> (frame, frame-from-keyframe)
@@ -174,6 +182,7 @@ class MonoVO:
             self._focal = self.camera.focal / detector_pixel(self.extractor, *image.shape[:2])
             self._initialiser.focal = self._focal
         extracted = time.perf_counter()
+        self._background.wait()  # the last keyframe's mapping, when it runs on the worker thread
         result = VOResult(index=index, timestamp=timestamp, pose=np.eye(4), status=INITIALISING,
                           num_features=len(features), num_matches=0, num_inliers=0, num_landmarks=0,
                           extract_ms=1e3 * (extracted - start), track_ms=0.0)
@@ -182,11 +191,20 @@ class MonoVO:
         result.pose = invert_pose(self._poses_cw[index])
         result.track_ms = 1e3 * (time.perf_counter() - extracted)
         self.results.append(result)
+        if self._mapping_job is not None:  # started only now, so it sees this frame's result
+            job, self._mapping_job = self._mapping_job, None
+            self._background.submit(job)
         return result
+
+    def finish(self) -> None:
+        """Wait for a keyframe's mapping still running on the worker thread (``mapping_thread``) and stop the
+        thread; call it before reading the final trajectory. A later `process` carries on as before."""
+        self._background.close()
 
     def skip(self, problem: str, timestamp: float | None = None) -> VOResult:
         """Record a frame that could not be used (status ``skipped``, pose held) and say why; the map and the
         tracks are untouched, so the next good frame is matched to the last good one."""
+        self._background.wait()
         index = len(self.results)
         self._poses_cw.append(self._poses_cw[-1].copy() if self._poses_cw else np.eye(4))
         result = VOResult(index=index, timestamp=timestamp, pose=invert_pose(self._poses_cw[index]), status=SKIPPED,
@@ -286,10 +304,8 @@ class MonoVO:
         result.num_matches, result.num_inliers = outcome.matches, outcome.inliers
         result.num_landmarks = int(np.count_nonzero(outcome.landmark >= 0))
         if self._needs_keyframe(index, result.num_landmarks) or status == RELOCALISED:
-            start = time.perf_counter()
-            self._insert_keyframe(index, frame, outcome.landmark)
+            self._insert_keyframe(index, frame, outcome.landmark, result)
             result.keyframe = True
-            result.mapping_ms = 1e3 * (time.perf_counter() - start)
         else:
             keyframe = self.map.keyframes[self._reference_kf]
             self._anchors[self._reference_kf].append((index, pose @ invert_pose(keyframe.pose_cw)))
@@ -309,12 +325,21 @@ class MonoVO:
         established = np.count_nonzero(self.map.observation_counts(ids) >= min(3, len(self.map.keyframes)))
         return since >= cfg.keyframe_min_gap and tracked < cfg.keyframe_track_ratio * established
 
-    def _insert_keyframe(self, index: int, frame: FrameData, landmark: np.ndarray) -> None:
-        cfg, focal = self.config, self._focal
+    def _insert_keyframe(self, index: int, frame: FrameData, landmark: np.ndarray, result: VOResult) -> None:
         keyframe = Keyframe(index, self._poses_cw[index].copy(), frame.points, frame.pixels, frame.descriptors,
                             landmark.copy())
         number = self.map.add_keyframe(keyframe)
         self._anchors[number] = [(index, np.eye(4))]
+        job = lambda: self._map_keyframe(number, frame, keyframe, result)  # noqa: E731
+        if self.config.mapping_thread:
+            self._mapping_job = job
+        else:
+            job()
+
+    def _map_keyframe(self, number: int, frame: FrameData, keyframe: Keyframe, result: VOResult) -> None:
+        """New landmarks, local bundle adjustment and culling for keyframe ``number``."""
+        cfg, focal = self.config, self._focal
+        start = time.perf_counter()
         refresh_landmarks(self.map, number, cfg.mapping, focal)
         triangulate_new_landmarks(self.map, number, cfg.mapping, focal, cfg.match_max_distance, cfg.match_ratio)
         for moved in local_bundle_adjustment(self.map, number, cfg.mapping, focal):
@@ -322,6 +347,7 @@ class MonoVO:
         cull_landmarks(self.map, number, cfg.mapping)
         self._previous = (frame, keyframe.landmark)  # the adjustment may have dropped observations
         self._set_reference(number)
+        result.mapping_ms = 1e3 * (time.perf_counter() - start)
 
     def _follow_keyframe(self, number: int) -> None:
         """Frames anchored to a keyframe the adjustment moved move with it (results included)."""
