@@ -176,7 +176,8 @@ def extract_keypoints(
     _, _, height, width = heatmap.shape
     if border_weights is None:
         border_weights = border_mask(height, width, border, heatmap)
-    scores = max_pool_nms(heatmap, nms_radius)[0, 0] * border_weights
+    # Reshapes, not [0, 0] / [0]: an index exports as a Gather that copies the whole map.
+    scores = max_pool_nms(heatmap, nms_radius).reshape(height, width) * border_weights
     keypoints, values = top_k_keypoints(scores, max_keypoints)
     if subpixel:
         keypoints = refine_keypoints(heatmap, keypoints)
@@ -185,6 +186,6 @@ def extract_keypoints(
     return {
         "keypoints": keypoints,
         "scores": values,
-        "descriptors": sample_descriptors(descriptors[0], keypoints, projection),
+        "descriptors": sample_descriptors(descriptors.reshape(descriptors.shape[1:]), keypoints, projection),
         "num_valid": num_valid,
     }
