@@ -11,7 +11,8 @@ States of a frame (``VOResult.status``), and what moves between them:
   give the pose, with a wider search and then the previous frame as fallbacks (`tracking.py`;
   ``VOResult.tracked_by`` says which). A frame becomes a keyframe when it tracks too small a share of the
   reference keyframe's landmarks, or after ``keyframe_max_gap`` frames; a keyframe adds landmarks,
-  runs the local bundle adjustment over keyframes and culls bad landmarks (`mapping.py`).
+  runs the local bundle adjustment over keyframes and culls bad landmarks (`mapping.py`), inline or, with
+  ``VOConfig.mapping_thread``, on a worker thread while the next frame is extracted (`background.py`).
 - ``lost``: every search failed (or the frame had too few features). The pose is held; the next frames
   first try to relocalise against recent keyframes (`relocalise.py`) -> ``relocalised``, and after
   ``relocalise_frames`` failed tries also start a fresh two-view initialisation, scaled by the speed
