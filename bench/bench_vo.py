@@ -76,12 +76,12 @@ def main() -> int:
     from test_vo_artefact import write_artefact
 
     with tempfile.TemporaryDirectory() as tmp:
-        extractors = [("orb-1000", OrbExtractor(1000)),
-                      ("harris-fixture", FeatureExtractor(write_artefact(Path(tmp) / "harris"), threads=1)),
-                      ("default-artefact", FeatureExtractor(default_artefact(), threads=1))]
-        extractors += [(Path(a).name, FeatureExtractor(a, threads=1)) for a in args.artefact]
-        runs = [(name, ex, False) for name, ex in extractors]
-        runs.insert(3, ("default + thread", extractors[2][1], True))  # mapping on a second thread
+        default = FeatureExtractor(default_artefact(), threads=1)
+        runs = [("orb-1000", OrbExtractor(1000), False),
+                ("harris-fixture", FeatureExtractor(write_artefact(Path(tmp) / "harris"), threads=1), False),
+                ("default-artefact", default, False),
+                ("default + thread", default, True)]  # mapping on a second thread
+        runs += [(Path(a).name, FeatureExtractor(a, threads=1), False) for a in args.artefact]
         rows = [max((run(name, ex, frames, camera, sequence.timestamps, threaded) for _ in range(args.repeat)),
                     key=lambda row: row["fps"]) for name, ex, threaded in runs]
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")

@@ -109,7 +109,7 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
 
     net, info = load_checkpoint(resolve_checkpoint(options.checkpoint))
     set_deform_strategy(net, "native" if profile.deform_strategy == "native" else "torch")
-    set_elu_form(net, "max_exp" if profile.runtime.startswith("onnxruntime") else "native")
+    set_elu_form(net, profile.elu_form)
     torch.manual_seed(0)
 
     keypoint_module = KeypointGraph(net, height, width, max_keypoints, options.nms_radius, options.threshold, options.border).eval()

@@ -37,6 +37,12 @@ class TargetProfile:
     hardware: dict[str, Any] = field(default_factory=dict)
     source: str = ""
 
+    @property
+    def elu_form(self) -> str:
+        """How ELU is traced for this target (`models.featurenet.ELU`): onnxruntime runs max(x, exp(min(x, 0))
+        - 1) faster than its own Elu op; TensorRT fuses Elu into the conv."""
+        return "max_exp" if self.runtime.startswith("onnxruntime") else "native"
+
 
 def available_profiles() -> list[str]:
     """Names of the profiles shipped with the toolkit."""

@@ -46,18 +46,13 @@ def graph_module(source: ModelSource, height: int, width: int, max_keypoints: in
     return KeypointGraph(source.net, height, width, k, source.nms_radius, source.threshold, source.border).eval()
 
 
-def elu_form_for(profile: TargetProfile) -> str:
-    """How ELU is traced for ``profile``: see `models.featurenet.ELU`."""
-    return "max_exp" if profile.runtime.startswith("onnxruntime") else "native"
-
-
 def target_graph(source: ModelSource, profile: TargetProfile, height: int, width: int) -> TargetGraph:
     """The artefact's own graph when it was exported for ``profile``, else a fresh export with its rules."""
     if source.artefact_dir is not None and source.artefact_target == profile.name:
         model = source.artefact_model()
         return TargetGraph(profile.name, model, onnx_layer_costs(model), True)
     set_deform_strategy(source.net, "native" if profile.deform_strategy == "native" else "torch")
-    set_elu_form(source.net, elu_form_for(profile))
+    set_elu_form(source.net, profile.elu_form)
     module = graph_module(source, height, width, profile.default_max_keypoints)
     outputs = DENSE_OUTPUTS if source.artefact_dense else KEYPOINT_OUTPUTS
     exported = export_onnx(module, torch.zeros(1, 1, height, width), profile.max_opset, outputs).model
@@ -149,8 +144,8 @@ def build_report(sources: list[ModelSource], profiles: list[TargetProfile], hard
         entry = {"name": source.name, "origin": source.origin, **counts, "targets": {}}
         for profile in profiles:
             # fvcore counts the graph the target runs: onnxruntime's ELU is four elementwise ops, not one.
-            macs = counts["macs"] if elu_form_for(profile) == "native" else count_model(
-                source, height, width, profiles[0].default_max_keypoints, elu_form_for(profile))["macs"]
+            macs = counts["macs"] if profile.elu_form == "native" else count_model(
+                source, height, width, profiles[0].default_max_keypoints, profile.elu_form)["macs"]
             graph = target_graph(source, profile, height, width)
             entry["targets"][profile.name] = target_entry(graph, macs, hardware[profile.name])
             if profile.name == host_profile:
