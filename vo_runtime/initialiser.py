@@ -6,6 +6,7 @@ The tracks (`tracks.py`) only serve this phase: once a map exists, frames are tr
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -41,6 +42,9 @@ class Initialiser:
         self.reference = -1               # frame the next initialisation measures from
         self._reference_frame: FrameData | None = None
         self._previous: tuple[FrameData, Tracks] | None = None
+        # align(source, target, source_rows, target_rows): patch alignment (`refine.py`) of the current
+        # frame's track ends onto the reference frame before the two-view fit; None: off.
+        self.align: Callable | None = None
 
     def restart(self, index: int, frame: FrameData, features: Features | None = None) -> None:
         """Measure the next initialisation from this frame."""
@@ -82,6 +86,8 @@ class Initialiser:
         dying = len(rows) < 3 * cfg.min_matches
         if motion < (cfg.init_min_parallax_px / 3 if dying else cfg.init_min_parallax_px):
             return None
+        if self.align is not None:
+            self.align(self._reference_frame, frame, tracks.ids[rows] & ROW_MASK, rows)
         pts_ref, pts_cur = tracks.first_points[rows], tracks.points[rows]
         frames = index - self.reference
         scale = (speed or cfg.initial_baseline) * frames if speed is not None else cfg.initial_baseline

@@ -26,6 +26,7 @@ class Keyframe:
     pixels: np.ndarray       # [N, 2]
     descriptors: np.ndarray  # [N, D], unit rows
     landmark: np.ndarray     # [N] landmark id observed by each keypoint, -1 where none
+    gray: np.ndarray | None = None  # the frame, uint8, for patch alignment (`refine.py`); dropped when old
 
     def landmark_ids(self) -> np.ndarray:
         return self.landmark[self.landmark >= 0]

@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -74,8 +75,14 @@ def essential_between(pose_a: np.ndarray, pose_b: np.ndarray) -> np.ndarray:
 
 
 def triangulate_new_landmarks(local_map: LocalMap, number: int, config: MappingConfig, focal: float,
-                              max_distance: float, ratio: float | None) -> int:
-    """Create landmarks between keyframe ``number`` and its covisible keyframes; returns how many."""
+                              max_distance: float, ratio: float | None, align: Callable | None = None,
+                              detection_scale: float = 1.0) -> int:
+    """Create landmarks between keyframe ``number`` and its covisible keyframes; returns how many.
+
+    ``align(source, target, source_rows, target_rows)``, when given, moves the new keyframe's matched
+    keypoints onto the other keyframe's patches (`refine.py`) before they are triangulated. The epipolar
+    gate sees the keypoints before that, as detected: ``detection_scale`` widens it by the precision that
+    alignment adds (`VOConfig.align_gain`), since ``focal`` measures aligned pixels."""
     new = local_map.keyframes[number]
     # The previous keyframe (the most overlap: in a turn, older keyframes share little of the view) and
     # then the best covisible ones.
@@ -90,11 +97,13 @@ def triangulate_new_landmarks(local_map: LocalMap, number: int, config: MappingC
         rows_b = np.flatnonzero(new.landmark < 0)[: config.triangulation_candidates]
         essential = essential_between(other.pose_cw, new.pose_cw)
         pairs = match_epipolar(other.points[rows_a], other.descriptors[rows_a], new.points[rows_b],
-                               new.descriptors[rows_b], essential, config.epipolar_threshold_px / focal,
+                               new.descriptors[rows_b], essential, detection_scale * config.epipolar_threshold_px / focal,
                                max_distance, min(ratio or 1.0, config.triangulation_ratio))
         if len(pairs) == 0:
             continue
         a, b = rows_a[pairs[:, 0]], rows_b[pairs[:, 1]]
+        if align is not None:
+            align(other, new, a, b)
         world, error = triangulate(other.pose_cw, new.pose_cw, other.points[a], new.points[b])
         angles = ray_angles(other.pose_cw, new.pose_cw, other.points[a], new.points[b])
         good = (error < config.triangulation_threshold_px / focal) & (angles >= min_angle(config, focal))

@@ -29,7 +29,6 @@ relative to its reference keyframe, so frames reported earlier follow when bundl
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -37,84 +36,22 @@ import numpy as np
 
 from vo_runtime.background import Background
 from vo_runtime.camera import Camera
-from vo_runtime.errors import CalibrationError, FrameError, VORuntimeError
-from vo_runtime.features import FeatureExtractor, Features, check_frame
+from vo_runtime.config import VOConfig, VOResult
+from vo_runtime.errors import CalibrationError, FrameError
+from vo_runtime.features import FeatureExtractor, Features, check_frame, to_gray_u8
 from vo_runtime.geometry import camera_centre, invert_pose, per_frame_motion
 from vo_runtime.initialiser import Initialiser
 from vo_runtime.localmap import Keyframe, LocalMap
-from vo_runtime.mapping import (MappingConfig, cull_landmarks, local_bundle_adjustment, refresh_landmarks,
-                                 triangulate_new_landmarks)
+from vo_runtime.mapping import cull_landmarks, local_bundle_adjustment, refresh_landmarks, triangulate_new_landmarks
+from vo_runtime.refine import PatchAligner, align_rows, align_to_map
 from vo_runtime.relocalise import relocalise
-from vo_runtime.tracking import RELOCALISATION, FrameData, TrackingSettings, guided_pose, track_frame
+from vo_runtime.tracking import RELOCALISATION, FrameData, TrackingSettings, guided_pose, refit_pose, track_frame
 
 INITIALISING, TRACKING, RELOCALISED, REINITIALISED, LOST = (
     "initialising", "tracking", "relocalised", "reinitialised", "lost")
 SKIPPED = "skipped"  # the frame could not be used (see VOResult.problem); the pose is held
 TRACKED_STATES = (TRACKING, RELOCALISED, REINITIALISED)
-
-
-@dataclass
-class VOConfig:
-    """Tuning knobs. Pixel thresholds are in the detector's pixels (the frame's, unless the extractor resizes
-    frames to a smaller input: see `detector_pixel`); angles in degrees."""
-
-    match_max_distance: float = 0.9      # L2 between unit descriptors (0..2)
-    match_ratio: float | None = 0.9      # Lowe ratio on distances; None disables
-    min_features: int = 30               # fewer detections: the frame is not used
-    min_matches: int = 30                # correspondences an (re)initialisation needs
-    min_pnp_inliers: int = 20            # a pose needs this many inliers to be trusted
-    ransac_threshold_px: float = 1.0     # essential-matrix RANSAC (Sampson distance)
-    pnp_threshold_px: float = 3.0        # pose inlier gate (reprojection error)
-    triangulation_threshold_px: float = 3.0  # largest reprojection error of a new landmark in either view
-    init_min_parallax_px: float = 15.0   # median track motion before a two-view initialisation is tried
-    init_min_landmarks: int = 40         # triangulated points an initialisation must produce
-    min_triangulation_deg: float = 1.0   # rays closer than this give no landmark
-    search_radius_px: float = 15.0       # guided matching around a landmark's predicted position
-    wide_search_radius_px: float = 45.0  # ... when the first search explains too little
-    local_keyframes: int = 8             # the reference keyframe and its best covisible ones form the local map
-    max_local_points: int = 1500         # landmarks projected per search (the most often found)
-    keyframe_max_gap: int = 4            # a tracked frame becomes a keyframe at least this often ...
-    keyframe_track_ratio: float = 0.8    # ... or when it tracks fewer than this share of the reference keyframe's landmarks
-    keyframe_min_tracked: int = 50       # ... or when it tracks fewer landmarks than this
-    keyframe_min_gap: int = 1            # ... but not sooner than this many frames after the last
-    relocalise_keyframes: int = 5        # recent keyframes a lost frame tries to relocalise against (0: never)
-    relocalise_frames: int = 3           # failed relocalisations before a fresh initialisation may start
-    initial_baseline: float = 1.0        # length of the first baseline, in output units
-    # A keyframe's mapping on a second thread, overlapping the next frame's extraction (`background.py`):
-    # the same results, sooner; a keyframe's own pose is refined after `process` returns (call `finish`).
-    mapping_thread: bool = False
-    mapping: MappingConfig = field(default_factory=MappingConfig)
-
-    def __post_init__(self) -> None:
-        if self.min_matches < 8 or self.min_pnp_inliers < 6:
-            raise VORuntimeError("min_matches must be >= 8 and min_pnp_inliers >= 6")
-        if self.initial_baseline <= 0:
-            raise VORuntimeError("initial_baseline must be positive")
-        if not 0 < self.search_radius_px <= self.wide_search_radius_px:
-            raise VORuntimeError("search radii must be positive, the wide one no smaller")
-
-
-@dataclass
-class VOResult:
-    """Outcome of one frame. ``pose`` is camera-to-world (4x4)."""
-
-    index: int
-    timestamp: float | None
-    pose: np.ndarray
-    status: str
-    num_features: int
-    num_matches: int      # guided (or frame-to-frame) matches
-    num_inliers: int      # pose (or two-view) inliers
-    num_landmarks: int    # keypoints of this frame that observe a landmark
-    extract_ms: float
-    track_ms: float
-    keyframe: bool = False  # became a keyframe (adds landmarks, runs the local bundle adjustment)
-    problem: str | None = None  # why a skipped frame could not be used
-    tracked_by: str | None = None  # local map | wide search | previous frame | relocalisation | two-view
-    mapping_ms: float = 0.0  # keyframe work (triangulation, bundle adjustment, culling): part of track_ms,
-    #                          or on the worker thread with VOConfig.mapping_thread
-    match_ms: float = 0.0    # of track_ms: guided matching against the local map
-    pose_ms: float = 0.0     # of track_ms: pose refinement on those matches
+ALIGN_KEYFRAMES = 12  # keyframes that keep their image for patch alignment (the local map's 8 and some)
 
 
 class MonoVO:
@@ -151,6 +88,8 @@ class MonoVO:
         self._focal = self.camera.focal              # pixels per normalised unit, in the detector's pixels
         self._initialiser = Initialiser(self.config, self._focal)
         self._frame_size: tuple[int, int] | None = None  # (height, width) of the frames, fixed by the first one
+        self._aligner: PatchAligner | None = None    # patch alignment, set up on the first frame
+        self._detection_scale = 1.0                  # threshold pixels per raw detection's pixel (alignment)
 
     @property
     def init_model(self) -> str | None:
@@ -180,15 +119,14 @@ class MonoVO:
             return self.skip(str(exc), timestamp)
         if self._frame_size is None:
             self._frame_size = image.shape[:2]
-            self._focal = self.camera.focal / detector_pixel(self.extractor, *image.shape[:2])
-            self._initialiser.focal = self._focal
+            self._set_pixel_unit(detector_pixel(self.extractor, *image.shape[:2]))
         extracted = time.perf_counter()
         self._background.wait()  # the last keyframe's mapping, when it runs on the worker thread
         result = VOResult(index=index, timestamp=timestamp, pose=np.eye(4), status=INITIALISING,
                           num_features=len(features), num_matches=0, num_inliers=0, num_landmarks=0,
                           extract_ms=1e3 * (extracted - start), track_ms=0.0)
         self._poses_cw.append(self._poses_cw[-1].copy() if self._poses_cw else np.eye(4))
-        self._track(index, features, result)
+        self._track(index, features, result, image)
         result.pose = invert_pose(self._poses_cw[index])
         result.track_ms = 1e3 * (time.perf_counter() - extracted)
         self.results.append(result)
@@ -214,6 +152,18 @@ class MonoVO:
         self.results.append(result)
         return result
 
+    def _set_pixel_unit(self, pixel: float) -> None:
+        """Pixel thresholds are in detector pixels (``pixel`` frame pixels each); with patch alignment the
+        keypoints are ``align_gain`` times more precise, and the thresholds tighten with them."""
+        cfg = self.config
+        if cfg.align_window_px > 0 and pixel >= cfg.align_min_detector_pixel:
+            self._aligner = PatchAligner(int(cfg.align_window_px) | 1, cfg.align_max_shift * pixel)
+            self._initialiser.align = self._align
+            aligned = max(1.0, pixel / cfg.align_gain)
+            self._detection_scale, pixel = pixel / aligned, aligned
+        self._focal = self.camera.focal / pixel
+        self._initialiser.focal = self._focal
+
     def _check_size(self, height: int, width: int) -> None:
         """Intrinsics fit one frame size: the calibration's, or when it names none, the first frame's."""
         self.camera.check_frame(height, width)
@@ -222,7 +172,7 @@ class MonoVO:
                                    f"{self._frame_size[1]}x{self._frame_size[0]} (the intrinsics fit one size)")
 
     # ------------------------------------------------------------------ states
-    def _track(self, index: int, features: Features, result: VOResult) -> None:
+    def _track(self, index: int, features: Features, result: VOResult, image: np.ndarray) -> None:
         """Set this frame's pose (held until something better is known) and fill in ``result``."""
         cfg = self.config
         mapped = self.map is not None
@@ -231,6 +181,8 @@ class MonoVO:
             return  # the next frame is matched to the last good one
         pixels = np.asarray(features.keypoints, np.float64)
         frame = FrameData.build(self.camera.normalise(pixels), pixels, features.descriptors)
+        if self._aligner is not None:
+            frame.gray = to_gray_u8(image)
         if mapped and self._last_tracked >= 0:
             settings = self._settings(frame)
             outcome = track_frame(self.map, self._local_ids, self._predict(index), frame, self._previous, settings)
@@ -290,6 +242,9 @@ class MonoVO:
 
     def _accept(self, index: int, frame: FrameData, outcome, status: str, result: VOResult) -> None:
         """A tracked frame: store its pose, the motion model, and make it a keyframe if needed."""
+        if self._aligner is not None and align_to_map(self._aligner, self.map, frame, outcome.landmark,
+                                                      self.camera.normalise):
+            refit_pose(self.map, frame, outcome, self._settings(frame))
         pose = outcome.pose_cw
         if self._last_tracked >= 0:
             gap = index - self._last_tracked
@@ -328,8 +283,10 @@ class MonoVO:
 
     def _insert_keyframe(self, index: int, frame: FrameData, landmark: np.ndarray, result: VOResult) -> None:
         keyframe = Keyframe(index, self._poses_cw[index].copy(), frame.points, frame.pixels, frame.descriptors,
-                            landmark.copy())
+                            landmark.copy(), frame.gray)
         number = self.map.add_keyframe(keyframe)
+        if number >= ALIGN_KEYFRAMES:  # bounded memory: older keyframes are rarely a landmark's latest view
+            self.map.keyframes[number - ALIGN_KEYFRAMES].gray = None
         self._anchors[number] = [(index, np.eye(4))]
         job = lambda: self._map_keyframe(number, frame, keyframe, result)  # noqa: E731
         if self.config.mapping_thread:
@@ -342,13 +299,17 @@ class MonoVO:
         cfg, focal = self.config, self._focal
         start = time.perf_counter()
         refresh_landmarks(self.map, number, cfg.mapping, focal)
-        triangulate_new_landmarks(self.map, number, cfg.mapping, focal, cfg.match_max_distance, cfg.match_ratio)
+        triangulate_new_landmarks(self.map, number, cfg.mapping, focal, cfg.match_max_distance, cfg.match_ratio,
+                                  self._align if self._aligner is not None else None, self._detection_scale)
         for moved in local_bundle_adjustment(self.map, number, cfg.mapping, focal):
             self._follow_keyframe(moved)
         cull_landmarks(self.map, number, cfg.mapping)
         self._previous = (frame, keyframe.landmark)  # the adjustment may have dropped observations
         self._set_reference(number)
         result.mapping_ms = 1e3 * (time.perf_counter() - start)
+
+    def _align(self, source, target, source_rows: np.ndarray, target_rows: np.ndarray) -> None:
+        align_rows(self._aligner, source, target, source_rows, target_rows, self.camera.normalise)
 
     def _follow_keyframe(self, number: int) -> None:
         """Frames anchored to a keyframe the adjustment moved move with it (results included)."""
@@ -371,7 +332,7 @@ class MonoVO:
         reference, current = outcome.reference, outcome.current
         for frame_index, data in ((outcome.reference_index, reference), (index, current)):
             keyframe = Keyframe(frame_index, self._poses_cw[frame_index].copy(), data.points, data.pixels,
-                                data.descriptors, np.full(len(data.points), -1, np.int64))
+                                data.descriptors, np.full(len(data.points), -1, np.int64), data.gray)
             self._anchors[self.map.add_keyframe(keyframe)] = [(frame_index, np.eye(4))]
         self.map.add_landmarks(outcome.world, [(0, outcome.reference_rows), (1, outcome.current_rows)], outcome.angles)
         self._set_reference(1)

@@ -33,6 +33,7 @@ class FrameData:
     pixels: np.ndarray       # [N, 2]
     descriptors: np.ndarray  # [N, D]
     tree: cKDTree            # over ``points``
+    gray: np.ndarray | None = None  # the frame, uint8, for patch alignment (`refine.py`)
 
     @classmethod
     def build(cls, points: np.ndarray, pixels: np.ndarray, descriptors: np.ndarray) -> "FrameData":
@@ -120,6 +121,16 @@ def _fit_pose(local_map: LocalMap, visible: np.ndarray, pairs: np.ndarray, pose_
     landmark = np.full(len(frame.points), -1, np.int64)
     landmark[pairs[inliers, 1]] = visible[pairs[inliers, 0]]
     return TrackOutcome(pose, landmark, len(pairs), int(np.count_nonzero(inliers)), LOCAL_MAP)
+
+
+def refit_pose(local_map: LocalMap, frame: FrameData, outcome: TrackOutcome, settings: TrackingSettings) -> None:
+    """Refine ``outcome``'s pose again on its landmark matches once their keypoints moved (patch alignment,
+    `refine.py`); in place, and only if the refit still has enough inliers."""
+    rows = np.flatnonzero(outcome.landmark >= 0)
+    pairs = np.stack([np.arange(len(rows)), rows], axis=1)
+    again = _fit_pose(local_map, outcome.landmark[rows], pairs, outcome.pose_cw, frame, settings, robust=False)
+    if again is not None:
+        outcome.pose_cw, outcome.landmark, outcome.inliers = again.pose_cw, again.landmark, again.inliers
 
 
 def track_frame(local_map: LocalMap, ids: np.ndarray, predicted_cw: np.ndarray, frame: FrameData,

@@ -1,0 +1,105 @@
+"""Patch alignment (`vo_runtime/refine.py`): sub-pixel keypoints from image patches, on images with a
+known shift and on a real sequence against its ground truth."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from vo_runtime.refine import PatchAligner
+
+SHIFT = np.array([2.3, -1.7])  # the target image is the source moved by this many pixels (x, y)
+
+
+def textured_pair(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A blurred-noise image and the same image moved by SHIFT (bilinear warp, border replicated)."""
+    rng = np.random.default_rng(seed)
+    source = cv2.GaussianBlur(rng.uniform(0, 255, (240, 320)).astype(np.float32), (0, 0), 2.0)
+    source = cv2.normalize(source, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    move = np.float32([[1, 0, SHIFT[0]], [0, 1, SHIFT[1]]])
+    target = cv2.warpAffine(source, move, (320, 240), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return source, target
+
+
+def grid_points() -> np.ndarray:
+    xs, ys = np.meshgrid(np.arange(40, 281, 20), np.arange(40, 201, 20))
+    return np.c_[xs.ravel(), ys.ravel()].astype(np.float64)
+
+
+def test_alignment_recovers_a_subpixel_shift_from_noisy_detections():
+    source, target = textured_pair()
+    points = grid_points()
+    truth = points + SHIFT
+    rng = np.random.default_rng(1)
+    detected = truth + rng.uniform(-1.5, 1.5, truth.shape)  # detector noise, as a coarse detector has
+    positions, aligned = PatchAligner(window_px=15, max_shift_px=3.0).align(source, target, points, detected)
+    assert aligned.mean() > 0.95
+    error_before = np.linalg.norm(detected - truth, axis=1)
+    error_after = np.linalg.norm(positions[aligned] - truth[aligned], axis=1)
+    assert np.median(error_before) > 0.7 and np.median(error_after) < 0.05
+
+
+def test_a_point_that_would_move_too_far_keeps_its_detection():
+    source, target = textured_pair()
+    points = grid_points()
+    detected = points.copy()  # 2.9 px from where the patch really is
+    positions, aligned = PatchAligner(window_px=15, max_shift_px=1.0).align(source, target, points, detected)
+    assert not aligned.any()
+    np.testing.assert_array_equal(positions, detected)
+    positions, aligned = PatchAligner(window_px=15, max_shift_px=4.0).align(source, target, points, detected)
+    assert aligned.mean() > 0.95  # the same points with room to move
+    assert np.median(np.linalg.norm(positions[aligned] - (points[aligned] + SHIFT), axis=1)) < 0.05
+
+
+def test_flat_patches_are_not_aligned():
+    flat = np.full((240, 320), 90, np.uint8)
+    points = grid_points()
+    positions, aligned = PatchAligner(window_px=15, max_shift_px=3.0).align(flat, flat, points, points + 0.7)
+    assert not aligned.any()
+    np.testing.assert_array_equal(positions, points + 0.7)
+
+
+def test_no_points_is_not_an_error():
+    source, target = textured_pair()
+    positions, aligned = PatchAligner(15, 3.0).align(source, target, np.zeros((0, 2)), np.zeros((0, 2)))
+    assert positions.shape == (0, 2) and aligned.shape == (0,)
+
+
+def keyframe_epipolar_errors(vo, groundtruth: np.ndarray, camera) -> np.ndarray:
+    """Distance (frame pixels) of each landmark's observation in one keyframe from the epipolar line of its
+    observation in the next keyframe that sees it, under the ground-truth relative pose."""
+    from vo_runtime.mapping import essential_between
+
+    k_inv = np.linalg.inv(camera.matrix)
+    errors = []
+    for landmark in np.flatnonzero(vo.map.alive[: vo.map.size]).tolist():
+        seen = sorted(vo.map.observations[landmark].items())
+        for (ka, row_a), (kb, row_b) in zip(seen, seen[1:]):
+            frame_a, frame_b = vo.map.keyframes[ka], vo.map.keyframes[kb]
+            pose_a = np.linalg.inv(np.vstack([groundtruth[frame_a.frame], [0, 0, 0, 1]]))
+            pose_b = np.linalg.inv(np.vstack([groundtruth[frame_b.frame], [0, 0, 0, 1]]))
+            fundamental = k_inv.T @ essential_between(pose_a, pose_b) @ k_inv
+            line = fundamental @ np.r_[frame_a.pixels[row_a], 1.0]
+            errors.append(abs(line @ np.r_[frame_b.pixels[row_b], 1.0]) / np.hypot(line[0], line[1]))
+    return np.array(errors)
+
+
+def test_alignment_makes_the_shipped_artefacts_observations_agree_with_ground_truth(shared_data):
+    # KITTI's 1226x370 frames squeezed into the 240x320 artefact: one detector pixel is 3.8 frame pixels wide.
+    from vo_runtime import MonoVO, VOConfig
+    from vo_runtime.artefact import default_artefact
+    from vo_runtime.datasets import open_sequence
+    from vo_runtime.features import FeatureExtractor
+    from vo_runtime.sequence import read_frames
+
+    sequence = open_sequence(shared_data / "kitti_odom06_f000000-000050")
+    groundtruth = np.loadtxt(sequence.groundtruth).reshape(-1, 3, 4)
+    frames = list(read_frames(sequence.frames[:25]))
+    extractor = FeatureExtractor(default_artefact())
+    medians = {}
+    for window in (0, 15):
+        vo = MonoVO(extractor, sequence.camera, VOConfig(align_window_px=window))
+        for image, stamp in zip(frames, sequence.timestamps):
+            vo.process(image, stamp)
+        assert vo.results[-1].status == "tracking" and sum(r.keyframe for r in vo.results) >= 4
+        medians[window] = float(np.median(keyframe_epipolar_errors(vo, groundtruth, sequence.camera)))
+    assert medians[15] < 0.7 * medians[0], medians

@@ -1,0 +1,86 @@
+"""`VOConfig` (the tuning knobs of `MonoVO`, named and visible) and `VOResult` (what one frame returns)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vo_runtime.errors import VORuntimeError
+from vo_runtime.mapping import MappingConfig
+
+
+@dataclass
+class VOConfig:
+    """Tuning knobs. Pixel thresholds are in the detector's pixels (the frame's, unless the extractor resizes
+    frames to a smaller input: see `detector_pixel`); angles in degrees."""
+
+    match_max_distance: float = 0.9      # L2 between unit descriptors (0..2)
+    match_ratio: float | None = 0.9      # Lowe ratio on distances; None disables
+    min_features: int = 30               # fewer detections: the frame is not used
+    min_matches: int = 30                # correspondences an (re)initialisation needs
+    min_pnp_inliers: int = 20            # a pose needs this many inliers to be trusted
+    ransac_threshold_px: float = 1.0     # essential-matrix RANSAC (Sampson distance)
+    pnp_threshold_px: float = 3.0        # pose inlier gate (reprojection error)
+    triangulation_threshold_px: float = 3.0  # largest reprojection error of a new landmark in either view
+    init_min_parallax_px: float = 15.0   # median track motion before a two-view initialisation is tried
+    init_min_landmarks: int = 40         # triangulated points an initialisation must produce
+    min_triangulation_deg: float = 1.0   # rays closer than this give no landmark
+    search_radius_px: float = 15.0       # guided matching around a landmark's predicted position
+    wide_search_radius_px: float = 45.0  # ... when the first search explains too little
+    local_keyframes: int = 8             # the reference keyframe and its best covisible ones form the local map
+    max_local_points: int = 1500         # landmarks projected per search (the most often found)
+    keyframe_max_gap: int = 4            # a tracked frame becomes a keyframe at least this often ...
+    keyframe_track_ratio: float = 0.8    # ... or when it tracks fewer than this share of the reference keyframe's landmarks
+    keyframe_min_tracked: int = 50       # ... or when it tracks fewer landmarks than this
+    keyframe_min_gap: int = 1            # ... but not sooner than this many frames after the last
+    relocalise_keyframes: int = 5        # recent keyframes a lost frame tries to relocalise against (0: never)
+    relocalise_frames: int = 3           # failed relocalisations before a fresh initialisation may start
+    initial_baseline: float = 1.0        # length of the first baseline, in output units
+    # Patch alignment (`refine.py`): matched keypoints move onto the patch around the landmark's latest
+    # keyframe observation (window in frame pixels; 0: off) before the pose and new landmarks are computed.
+    # It runs when a detector pixel spans at least `align_min_detector_pixel` frame pixels (an artefact that
+    # resizes the frames); at frame resolution it did not pay (ORB, KITTI 07 from 5 starting frames: ATE
+    # geometric mean 0.36 -> 0.41 m).
+    align_window_px: int = 15
+    align_min_detector_pixel: float = 1.5
+    align_max_shift: float = 2.0         # detector pixels a keypoint may move; further: left where detected
+    # Aligned keypoints are this many times more precise than detections (matches' median epipolar error
+    # against KITTI 07's ground truth 1.28 -> 0.64 px), so pixel thresholds are in detector pixels / gain.
+    align_gain: float = 2.0
+    # A keyframe's mapping on a second thread, overlapping the next frame's extraction (`background.py`):
+    # the same results, sooner; a keyframe's own pose is refined after `process` returns (call `finish`).
+    mapping_thread: bool = False
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+
+    def __post_init__(self) -> None:
+        if self.min_matches < 8 or self.min_pnp_inliers < 6:
+            raise VORuntimeError("min_matches must be >= 8 and min_pnp_inliers >= 6")
+        if self.initial_baseline <= 0:
+            raise VORuntimeError("initial_baseline must be positive")
+        if self.align_window_px < 0 or self.align_max_shift <= 0 or self.align_gain < 1:
+            raise VORuntimeError("align_window_px must be >= 0, align_max_shift > 0 and align_gain >= 1")
+        if not 0 < self.search_radius_px <= self.wide_search_radius_px:
+            raise VORuntimeError("search radii must be positive, the wide one no smaller")
+
+
+@dataclass
+class VOResult:
+    """Outcome of one frame. ``pose`` is camera-to-world (4x4)."""
+
+    index: int
+    timestamp: float | None
+    pose: np.ndarray
+    status: str
+    num_features: int
+    num_matches: int      # guided (or frame-to-frame) matches
+    num_inliers: int      # pose (or two-view) inliers
+    num_landmarks: int    # keypoints of this frame that observe a landmark
+    extract_ms: float
+    track_ms: float
+    keyframe: bool = False  # became a keyframe (adds landmarks, runs the local bundle adjustment)
+    problem: str | None = None  # why a skipped frame could not be used
+    tracked_by: str | None = None  # local map | wide search | previous frame | relocalisation | two-view
+    mapping_ms: float = 0.0  # keyframe work (triangulation, bundle adjustment, culling): part of track_ms,
+    #                          or on the worker thread with VOConfig.mapping_thread
+    match_ms: float = 0.0    # of track_ms: guided matching against the local map
+    pose_ms: float = 0.0     # of track_ms: pose refinement on those matches
