@@ -221,9 +221,16 @@ class DeformableConv(nn.Module):
             ``"grid_sample"`` (training only: fastest on CPU, not exportable to either target).
     """
 
-    def __init__(self, in_channels: int, out_channels: int, modulated: bool = True, depthwise: bool = False) -> None:
+    def __init__(self, in_channels: int, out_channels: int, modulated: bool = True, depthwise: bool = False,
+                 deform_fraction: float = 1.0) -> None:
         super().__init__()
+        if not 0.0 < deform_fraction <= 1.0 or (deform_fraction < 1.0 and not depthwise):
+            raise ValueError("deform_fraction must be in (0, 1], and below 1 only for a depthwise kernel")
         self.modulated = modulated
+        # Share of the channels (the leading ones) sampled at the learned offsets; the rest take a plain
+        # depthwise 3x3. The deformable sampler is the largest single cost of the network on a CPU, and a
+        # depthwise kernel lets each channel choose independently, so the split is exact and cheap.
+        self.deform_fraction = float(deform_fraction)
         self.strategy: DeformStrategy = "torch"
         taps = 9
         self.offset_dw = nn.Conv2d(in_channels, in_channels, 3, padding=1, groups=in_channels, bias=False)
@@ -251,17 +258,30 @@ class DeformableConv(nn.Module):
             return branch, None
         return branch[:, :18], torch.sigmoid(branch[:, 18:])
 
+    @property
+    def deform_channels(self) -> int:
+        """Leading channels sampled at the offsets (follows the kernel's width, e.g. after pruning)."""
+        channels = self.conv.in_channels
+        return channels if self.deform_fraction >= 1.0 else max(1, min(channels, round(channels * self.deform_fraction)))
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.trace_as_plain_conv:  # pruning trace only, see __init__
             out = self.conv(x)
         else:
             offset, mask = self.offsets_and_mask(x)
+            weight, bias, split, plain = self.conv.weight, self.conv.bias, self.deform_channels, None
+            if split < x.shape[1]:  # depthwise: the channels past the split take the plain kernel
+                plain = F.conv2d(x[:, split:], weight[split:], None if bias is None else bias[split:], padding=1,
+                                 groups=x.shape[1] - split)
+                x, weight, bias = x[:, :split], weight[:split], None if bias is None else bias[:split]
             if self.strategy == "native":
-                out = native_deform_conv2d(x, offset, self.conv.weight, self.conv.bias, mask)
+                out = native_deform_conv2d(x, offset, weight, bias, mask)
             elif self.strategy == "grid_sample":
-                out = deform_conv2d_grid_sample(x, offset, self.conv.weight, self.conv.bias, mask)
+                out = deform_conv2d_grid_sample(x, offset, weight, bias, mask)
             else:
-                out = deform_conv2d(x, offset, self.conv.weight, self.conv.bias, mask, 1, 1, 1)
+                out = deform_conv2d(x, offset, weight, bias, mask, 1, 1, 1)
+            if plain is not None:
+                out = torch.cat([out, plain], dim=1)
         return out if self.pointwise is None else self.pointwise(out)
 
 

@@ -96,6 +96,7 @@ class FeatureNetConfig:
     modulated: bool = True
     deform_scale: int = 3  # index into widths: 3 = after the H/8 stage, 2 = after the H/4 stage
     deform_depthwise: bool = False  # depthwise deformable 3x3 + pointwise 1x1 instead of a dense deformable 3x3
+    deform_fraction: float = 1.0  # depthwise only: share of channels sampled at the offsets (the rest: plain 3x3)
     pixel_head_channels: int = 64  # width of the cell-pixel keypoint head; 0 = no such head
 
     def __post_init__(self) -> None:
@@ -208,7 +209,7 @@ class FeatureNet(nn.Module):
         if cfg.deformable:
             deform_channels = _channels_after(cfg, cfg.deform_scale)
             self.deform = DeformableConv(deform_channels, deform_channels, modulated=cfg.modulated,
-                                         depthwise=cfg.deform_depthwise)
+                                         depthwise=cfg.deform_depthwise, deform_fraction=cfg.deform_fraction)
             self.deform_bn = nn.BatchNorm2d(deform_channels)
             self.deform_act = make_activation(act)
         self.detector = nn.Sequential(

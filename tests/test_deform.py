@@ -85,10 +85,11 @@ def _run(model, x):
     return session.run(None, {"x": x.numpy()})[0]
 
 
-@pytest.mark.parametrize("modulated, depthwise", [(True, False), (False, False), (True, True)])
-def test_training_portable_and_native_paths_agree(modulated, depthwise):
+@pytest.mark.parametrize("modulated, depthwise, fraction", [(True, False, 1.0), (False, False, 1.0), (True, True, 1.0),
+                                                          (True, True, 0.5)])
+def test_training_portable_and_native_paths_agree(modulated, depthwise, fraction):
     torch.manual_seed(2)
-    layer = DeformableConv(8, 16, modulated=modulated, depthwise=depthwise).eval()
+    layer = DeformableConv(8, 16, modulated=modulated, depthwise=depthwise, deform_fraction=fraction).eval()
     torch.nn.init.normal_(layer.offset_pw.weight, std=1.5)  # offsets of several pixels, fractional
     torch.nn.init.normal_(layer.offset_pw.bias, std=4.0)
     x = torch.randn(1, 8, 12, 16)
@@ -106,7 +107,7 @@ def test_training_portable_and_native_paths_agree(modulated, depthwise):
     assert not portable_ops & {"DeformConv", "GridSample", "GatherND"}
     assert "DeformConv" in native_ops
     group = next(a.i for n in native.graph.node if n.op_type == "DeformConv" for a in n.attribute if a.name == "group")
-    assert group == (8 if depthwise else 1)
+    assert group == (int(8 * fraction) if depthwise else 1)
 
     assert np.abs(_run(portable, x) - training).max() <= 1e-4
     assert np.abs(_run(native, x) - training).max() <= 1e-4
@@ -205,3 +206,35 @@ def test_a_separable_stand_in_is_exact_for_a_rank_one_kernel_and_best_otherwise(
         stand_in = separable_from_dense(noisy, bias)
         rebuilt = stand_in["pointwise.weight"][:, :, 0, 0, None, None] * stand_in["conv.weight"][None, :, 0]
         assert (rebuilt - noisy).norm() < (dense - noisy).norm() + 1e-5  # rank-1 SVD: no worse than the true factors
+
+
+def test_partly_deformable_layer_samples_the_leading_channels_and_convolves_the_rest():
+    torch.manual_seed(3)
+    full = DeformableConv(8, 6, depthwise=True).eval()
+    torch.nn.init.normal_(full.offset_pw.weight, std=1.0)
+    torch.nn.init.normal_(full.offset_pw.bias, std=2.0)
+    half = DeformableConv(8, 6, depthwise=True, deform_fraction=0.5).eval()
+    half.load_state_dict(full.state_dict())  # same parameters: the split only decides which channels sample
+    assert half.deform_channels == 4
+    x = torch.randn(1, 8, 10, 12)
+    with torch.no_grad():
+        capture = {}
+        full.pointwise.register_forward_hook(lambda m, i, o: capture.__setitem__("full", i[0]))
+        half.pointwise.register_forward_hook(lambda m, i, o: capture.__setitem__("half", i[0]))
+        full(x), half(x)
+        plain = torch.nn.functional.conv2d(x, full.conv.weight, full.conv.bias, padding=1, groups=8)
+    # leading 4 channels: exactly the fully deformable layer's; the other 4: a plain depthwise 3x3
+    assert torch.allclose(capture["half"][:, :4], capture["full"][:, :4], atol=1e-6)
+    assert torch.allclose(capture["half"][:, 4:], plain[:, 4:], atol=1e-6)
+    assert not torch.allclose(capture["full"][:, 4:], plain[:, 4:], atol=1e-3)  # the offsets did move them
+    with torch.no_grad():
+        gather = half(x)
+        set_deform_strategy(half, "grid_sample")  # the training sampler splits the same way
+        assert torch.allclose(half(x), gather, atol=1e-4)
+
+
+def test_partial_deformation_needs_a_depthwise_kernel():
+    with pytest.raises(ValueError, match="depthwise"):
+        DeformableConv(8, 8, depthwise=False, deform_fraction=0.5)
+    with pytest.raises(ValueError):
+        DeformableConv(8, 8, depthwise=True, deform_fraction=0.0)

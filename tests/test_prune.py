@@ -154,8 +154,9 @@ def test_bad_inputs_exit_2_with_one_line(teacher, tmp_path, capsys):
     assert not Path(out).exists()
 
 
-def test_a_depthwise_deformable_conv_prunes_as_one_unit_and_exports(images, tmp_path):
-    config = FeatureNetConfig(**{**SMALL.to_dict(), "deform_depthwise": True})
+@pytest.mark.parametrize("fraction", [1.0, 0.5])
+def test_a_depthwise_deformable_conv_prunes_as_one_unit_and_exports(images, tmp_path, fraction):
+    config = FeatureNetConfig(**{**SMALL.to_dict(), "deform_depthwise": True, "deform_fraction": fraction})
     teacher = calibrated_random_featurenet(config, images)
     student = prune_channels(teacher, 0.3, SIZE)
     deform = student.deform
@@ -163,7 +164,8 @@ def test_a_depthwise_deformable_conv_prunes_as_one_unit_and_exports(images, tmp_
     assert deform.pointwise.out_channels == 48 and deform.offset_dw.groups == 48 and deform.offset_pw.out_channels == 27
     path = save_checkpoint(student, tmp_path / "pruned-dw.safetensors")
     loaded, info = load_checkpoint(path)
-    assert info.config["deform_depthwise"] is True
+    assert info.config["deform_depthwise"] is True and info.config["deform_fraction"] == fraction
+    assert loaded.deform.deform_channels == (48 if fraction == 1.0 else 24)  # the split follows the pruned width
     with torch.no_grad():
         x = torch.from_numpy(images[:1])
         assert torch.allclose(loaded(x)["logits"], student(x)["logits"], atol=1e-5)
