@@ -250,17 +250,20 @@ def test_keyframes_follow_the_gap_and_the_view_change():
     assert len(eager_keyframes) > 2 and np.diff(eager_keyframes).max() < 50
 
 
-def test_mapping_thread_gives_the_same_poses_as_inline_mapping(shared_data):
+@pytest.mark.parametrize("features", ["orb", "artefact"])  # the artefact resizes: patch alignment on
+def test_mapping_thread_gives_the_same_poses_as_inline_mapping(shared_data, features):
     # The worker only runs between one frame's tracking and the next, so nothing may change but the time.
+    from vo_runtime.artefact import default_artefact
     from vo_runtime.datasets import open_sequence
-    from vo_runtime.features import OrbExtractor
+    from vo_runtime.features import FeatureExtractor, OrbExtractor
     from vo_runtime.sequence import read_frames
 
     sequence = open_sequence(shared_data / "kitti_odom06_f000000-000050")
     frames = list(read_frames(sequence.frames[:30]))
+    extractor = OrbExtractor(1000) if features == "orb" else FeatureExtractor(default_artefact())
     poses = {}
     for threaded in (False, True):
-        vo = MonoVO(OrbExtractor(1000), sequence.camera, VOConfig(mapping_thread=threaded))
+        vo = MonoVO(extractor, sequence.camera, VOConfig(mapping_thread=threaded))
         for image, stamp in zip(frames, sequence.timestamps):
             vo.process(image, stamp)
             if len(vo.results) == 12:
