@@ -68,7 +68,8 @@ def match_by_projection(projected_px: np.ndarray, landmark_desc: np.ndarray, key
     idx = idx.reshape(len(projected_px), k)
     valid = idx < len(keypoints_px)  # missing neighbours come back as index len(keypoints)
     safe = np.where(valid, idx, 0)
-    sim = np.einsum("md,mkd->mk", landmark_desc.astype(np.float32), keypoint_desc[safe].astype(np.float32))
+    # No astype copies: the gathered [M, k, D] block is the largest array here (9 MB at 1500 x 6 x 256).
+    sim = np.einsum("md,mkd->mk", np.asarray(landmark_desc, np.float32), np.asarray(keypoint_desc, np.float32)[safe])
     dist = np.where(valid, np.sqrt(np.maximum(2.0 - 2.0 * sim, 0.0)), np.inf)
     order = np.argsort(dist, axis=1)
     rows = np.arange(len(projected_px))
