@@ -217,7 +217,7 @@ ASPECT_WARNING = 0.1  # a frame stretched more than 10 % on one axis by the resi
 
 
 def _warn_on_squeezed_frames(extractor: Any, camera: Any, frames: list[Path]) -> None:
-    """One warning line when the artefact's input aspect differs from the camera's: export for the camera."""
+    """One warning line when the artefact's input aspect differs from the camera's, naming the export for it."""
     if not hasattr(extractor, "aspect_distortion"):
         return
     height, width = camera.height, camera.width
@@ -228,9 +228,12 @@ def _warn_on_squeezed_frames(extractor: Any, camera: Any, frames: list[Path]) ->
         return
     pixels = extractor.height * extractor.width
     suggestion = f"{8 * round(math.sqrt(pixels * height / width) / 8)}x{8 * round(math.sqrt(pixels * width / height) / 8)}"
+    # Patch alignment recovers most of the precision (KITTI: a 152x504 export tracked no better than the
+    # squeezed 240x320 one with it, docs/vo.md), so this informs rather than prescribes.
     print(f"warning: {width}x{height} frames are resized to the artefact's {extractor.width}x{extractor.height}, "
-          f"another aspect, which costs keypoint precision; export an artefact for this camera "
-          f"(toolkit export --input-size {suggestion}, as many pixels)", file=sys.stderr)
+          f"another aspect, which costs detection precision; patch alignment on the full frames recovers most "
+          f"of it; an artefact for this camera's aspect is toolkit export --input-size {suggestion} "
+          f"(as many pixels)", file=sys.stderr)
 
 
 def _frame_record(result: VOResult, path: Path) -> dict[str, Any]:

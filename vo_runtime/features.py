@@ -124,9 +124,9 @@ class FeatureExtractor:
 
     def aspect_distortion(self, height: int, width: int) -> float:
         """How much resizing an ``height`` x ``width`` frame to the input stretches one axis against the other
-        (0: same aspect; 1.48 for KITTI's 1226x370 into 320x240). Keypoints are only as precise as the
-        coarser axis: on KITTI the squeezed 240x320 artefact's VO drifted 4.6 m (ATE, KITTI 07) against
-        0.64 m for the same weights exported at 184x608 (docs/vo.md)."""
+        (0: same aspect; 1.48 for KITTI's 1226x370 into 320x240). Detections are only as precise as the
+        coarser axis: without patch alignment the squeezed 240x320 artefact's VO drifted 4.6 m (ATE, KITTI 07)
+        against 0.64 m for the same weights exported at 184x608; with it, 0.36 m (docs/vo.md)."""
         ratio = (width / height) / (self.width / self.height)
         return max(ratio, 1.0 / ratio) - 1.0
 
