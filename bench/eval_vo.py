@@ -77,7 +77,8 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, overr
     states = [r.status for r in results]
     first = next((i for i, s in enumerate(states) if s not in (INITIALISING, SKIPPED)), len(states))
     after = states[first:]
-    row = {"sequence": sequence_dir.name + (f" from {start}" if start else ""), "start": start, "features": features if features == "orb" else artefact.name,
+    row = {"sequence": sequence_dir.name + (f" from {start}" if start else ""), "name": sequence_dir.name,
+           "start": start, "features": features if features == "orb" else artefact.name,
            "keypoints": keypoints if features == "orb" else None, "light": light, "frames": len(states),
            "initialised_at": first, "tracked": sum(s in TRACKED_STATES for s in after), "after_init": len(after),
            "states": {s: states.count(s) for s in dict.fromkeys(states)},
@@ -118,7 +119,7 @@ def summary(rows: list[dict]) -> str:
              "|---|---|---|---|---|---|---|"]
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
-        groups.setdefault((r["sequence"].split(" from ")[0], r["features"], r["keypoints"], r["light"]), []).append(r)
+        groups.setdefault((r["name"], r["features"], r["keypoints"], r["light"]), []).append(r)
     for (name, feats, keypoints, light), group in groups.items():
         ates = [r["ate"] for r in group]
         mean = "-" if None in ates else f"{float(np.exp(np.mean(np.log(np.maximum(ates, 1e-6))))):.3f}"
@@ -148,13 +149,14 @@ def main() -> int:
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
     if args.output is not None:
         args.output.mkdir(parents=True, exist_ok=True)
+    starts = [int(v) for v in args.starts.split(",")]
     rows = []
     for name in args.sequences.split(","):
+        length = len(open_sequence(args.data / name).frames)
         for features in args.features.split(","):
             for light in args.light.split(","):
                 for keypoints in [int(k) for k in args.keypoints.split(",")]:
-                    length = len(open_sequence(args.data / name).frames)
-                    for first in [int(v) for v in args.starts.split(",") if int(v) == 0 or int(v) < length - 20]:
+                    for first in [v for v in starts if v == 0 or v < length - 20]:
                         began = time.perf_counter()
                         row = run_one(args.data / name, features, light, keypoints, overrides, artefact,
                                       args.output, size, first)
@@ -162,7 +164,7 @@ def main() -> int:
                         rows.append(row)
                         print(table([row]).splitlines()[-1], flush=True)
     text = table(rows)
-    if len(args.starts.split(",")) > 1:
+    if len(starts) > 1:
         text += "\n\n" + summary(rows)
     print(text)
     if args.output is not None:

@@ -66,25 +66,19 @@ def align_to_map(aligner: PatchAligner, local_map, frame, landmark: np.ndarray,
                         for i in landmark[rows].tolist()], np.int64)
     moved = 0
     for number in np.unique(anchors[anchors >= 0]).tolist():
-        keyframe = local_map.keyframes[number]
-        if keyframe.gray is None:
-            continue
         pick = rows[anchors == number]
         source_rows = np.array([local_map.observations[i][number] for i in landmark[pick].tolist()], np.int64)
-        moved += _align_rows(aligner, keyframe, frame, source_rows, pick, normalise)
+        moved += align_rows(aligner, local_map.keyframes[number], frame, source_rows, pick, normalise)
     return moved
 
 
 def align_rows(aligner: PatchAligner, source, target, source_rows: np.ndarray, target_rows: np.ndarray,
                normalise: Callable[[np.ndarray], np.ndarray]) -> int:
     """Align keypoints ``target_rows`` of keyframe/frame ``target`` onto ``source_rows`` of ``source``
-    (both with ``pixels``, ``points`` and ``gray``); returns how many moved."""
+    (both with ``pixels``, ``points`` and ``gray``; one without its frame is skipped); updates ``target``
+    in place and returns how many moved."""
     if source.gray is None or target.gray is None or len(source_rows) == 0:
         return 0
-    return _align_rows(aligner, source, target, source_rows, target_rows, normalise)
-
-
-def _align_rows(aligner, source, target, source_rows, target_rows, normalise) -> int:
     positions, aligned = aligner.align(source.gray, target.gray, source.pixels[source_rows],
                                        target.pixels[target_rows])
     rows = target_rows[aligned]
