@@ -42,10 +42,12 @@ def test_orb_on_kitti_tracks_every_frame_and_keeps_scale(shared_data):
     for image, stamp in zip(read_frames(sequence.frames), sequence.timestamps):
         vo.track(image, stamp)
     states = [r.status for r in vo.results]
-    assert LOST not in states and states.index(TRACKING) <= 5
+    # The initialisation waits for a 2 degree median ray angle (VOConfig.init_min_median_deg): frame 7 here.
+    assert LOST not in states and states.index(TRACKING) <= 10
     report = evaluate(vo.results, sequence.groundtruth, "kitti", sequence.timestamps)
-    # 60 m of straight driving; measured 0.4-1.8 m depending on the ORB feature count.
-    assert report["path_length_m"] > 55 and report["ate_rmse_m"] < 3.0
+    # 60 m of straight driving (52 m of it after the initialisation); measured 0.3-1.8 m depending on the
+    # ORB feature count and the VO settings.
+    assert report["path_length_m"] > 45 and report["ate_rmse_m"] < 3.0
 
 
 def _write_frames(folder, images):

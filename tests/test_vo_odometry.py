@@ -121,6 +121,28 @@ def test_initialisation_picks_the_model_that_fits():
     assert rmse < 1e-3
 
 
+def test_initialisation_waits_for_the_median_ray_angle(monkeypatch):
+    """A short first baseline sets a poor scale and map: the two-view fit waits until the median ray angle of
+    its landmarks reaches `init_min_median_deg` (the tracks are healthy here, so nothing relaxes it)."""
+    from vo_runtime.initialiser import Initialiser
+
+    committed = []
+    original = Initialiser.try_initialise
+
+    def recording(self, index, poses_cw, speed):
+        outcome = original(self, index, poses_cw, speed)
+        if outcome is not None:
+            committed.append((index, float(np.median(outcome.angles))))
+        return outcome
+
+    monkeypatch.setattr(Initialiser, "try_initialise", recording)
+    poses = straight_then_turn(30)
+    for gate in (0.0, 2.0):
+        run(SyntheticExtractor(poses), 30, VOConfig(init_min_median_deg=gate))
+    (early, early_angle), (late, late_angle) = committed
+    assert early_angle < 2.0 <= late_angle and late > early
+
+
 def test_first_baseline_sets_the_unit():
     poses = straight_then_turn(30)
     vo = run(SyntheticExtractor(poses), 30, VOConfig(initial_baseline=2.0))
