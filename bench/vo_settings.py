@@ -8,9 +8,8 @@ Single runs of these 20-160-frame sequences move by tens of centimetres with any
 setting is judged on the geometric mean of the ATE over many starts: KITTI 07 from frames 0, 10, ..., 130,
 KITTI 06 from 0, 5, ..., 30 and TUM fr2 desk from 0 in normal light (22 runs); KITTI 07 from 0, 25, ..., 100,
 KITTI 06 from 0, 10, 20 and TUM in simulated low light (`--lowlight 2,3,0.3`, 9 runs). Runs go to
-``--workers`` processes (one thread each, as in `eval_vo.py`, whose `run_one` does the work); the table gives
-per sequence and light the geometric mean, the worst run and the least tracked share. A run that fails to
-give an ATE counts as 99 m.
+``--workers`` processes (one thread each, as in `eval_vo.py`, whose `run_one` and `summary` do the work); the
+table gives per sequence and light the geometric mean, every run's ATE and the least tracked share.
 """
 from __future__ import annotations
 
@@ -19,8 +18,6 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
@@ -31,7 +28,6 @@ STARTS = {
     "low": {"kitti_odom07_f000000-000159": range(0, 101, 25), "kitti_odom06_f000000-000050": range(0, 21, 10),
             "tum_fr2_desk_snippet": [0]},
 }
-FAILED_ATE = 99.0
 
 
 def run(job: tuple) -> dict:
@@ -42,21 +38,7 @@ def run(job: tuple) -> dict:
     import eval_vo
     from vo_runtime.artefact import default_artefact
 
-    row = eval_vo.run_one(data / name, features, light, 2000, overrides, default_artefact(), None, None, start)
-    return {"name": name, "light": light, "start": start, "ate": row["ate"], "tracked": row["tracked_pct"]}
-
-
-def summarise(rows: list[dict]) -> str:
-    lines = ["| sequence | light | runs | ATE m (geometric mean) | worst ATE m | least tracked |", "|---|---|---|---|---|---|"]
-    groups: dict[tuple, list[dict]] = {}
-    for r in rows:
-        groups.setdefault((r["name"], r["light"]), []).append(r)
-    for (name, light), group in groups.items():
-        ates = np.array([FAILED_ATE if r["ate"] is None else r["ate"] for r in group])
-        mean = float(np.exp(np.mean(np.log(np.maximum(ates, 1e-6)))))
-        least = min(r["tracked"] for r in group)
-        lines.append(f"| {name} | {light} | {len(group)} | {mean:.3f} | {ates.max():.3f} | {least:.0f} % |")
-    return "\n".join(lines)
+    return eval_vo.run_one(data / name, features, light, 2000, overrides, default_artefact(), None, None, start)
 
 
 def main() -> int:
@@ -76,7 +58,7 @@ def main() -> int:
     with ProcessPoolExecutor(max(1, args.workers)) as pool:
         rows = list(pool.map(run, jobs))
     print(f"{args.features}, settings {overrides or 'default'}: {len(rows)} runs, {time.perf_counter() - began:.0f} s")
-    print(summarise(rows))
+    print(eval_vo.summary(rows))
     return 0
 
 
