@@ -32,8 +32,8 @@ class VOConfig:
     max_local_points: int = 1500         # landmarks projected per search (the most often found)
     keyframe_max_gap: int = 4            # a tracked frame becomes a keyframe at least this often ...
     keyframe_track_ratio: float = 0.8    # ... or when it tracks fewer than this share of the reference keyframe's landmarks
-    keyframe_min_tracked: int = 80       # ... or when it tracks fewer landmarks than this (50 runs ~10 % faster
-    #                                      but lost 17-20 % of the frames of dark KITTI runs: docs/vo.md)
+    keyframe_min_tracked: int = 80       # ... or when it tracks fewer landmarks than this (with 50 the VO ran
+    #                                      ~10 % faster but lost 17-20 % of the frames of dark KITTI runs: docs/vo.md)
     keyframe_min_gap: int = 1            # ... but not sooner than this many frames after the last
     relocalise_keyframes: int = 5        # recent keyframes a lost frame tries to relocalise against (0: never)
     relocalise_frames: int = 3           # failed relocalisations before a fresh initialisation may start

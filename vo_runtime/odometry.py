@@ -5,7 +5,8 @@ States of a frame (``VOResult.status``), and what moves between them:
 - ``initialising``: no map yet. Keypoints are matched frame to frame into tracks (`tracks.py`); once the
   tracks from the reference frame have moved far enough, a homography or an essential matrix (whichever
   scores better, `twoview.py`) gives the relative pose, and the triangulated points become the first
-  landmarks, observed by two keyframes. The first baseline sets the unit (``VOConfig.initial_baseline``).
+  landmarks, observed by two keyframes, once their rays are far enough apart (median
+  ``VOConfig.init_min_median_deg``). The first baseline sets the unit (``VOConfig.initial_baseline``).
 - ``tracking``: the pose predicted by a constant-velocity model projects the local map (landmarks of the
   reference keyframe and its covisible keyframes) into the frame; guided matching and a robust refinement
   give the pose, with a wider search and then the previous frame as fallbacks (`tracking.py`;
