@@ -47,6 +47,7 @@ CASES: list[tuple[str, str, Callable[[Space], list]]] = [
     ("zero-frames", "--max-frames", lambda s: orb(s, "--max-frames", "0")),
     ("zero-threads", "--threads", lambda s: orb(s, "--threads", "0")),
     ("zero-blas-threads", "--blas-threads", lambda s: orb(s, "--blas-threads", "0")),
+    ("negative-extract-ahead", "--extract-ahead", lambda s: orb(s, "--extract-ahead=-1")),
     ("nan-lowlight", "--lowlight", lambda s: orb(s, "--lowlight", "nan,3")),
     # messages
     ("camera-without-images", "no image_9/ for --camera 9", lambda s: orb(s, "--camera", "9")),

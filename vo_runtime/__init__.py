@@ -6,9 +6,10 @@ from vo_runtime.camera import Camera, load_camera
 from vo_runtime.errors import ArtefactError, CalibrationError, FrameError, VORuntimeError
 from vo_runtime.features import FeatureExtractor, Features, OrbExtractor
 from vo_runtime.odometry import MonoVO, VisualOdometry, VOConfig, VOResult
+from vo_runtime.pipeline import StreamFrame
 from vo_runtime.trajectory import write_trajectory
 
 __all__ = [
     "ArtefactError", "CalibrationError", "Camera", "FeatureExtractor", "Features", "FrameError", "MonoVO", "OrbExtractor",
-    "VOConfig", "VOResult", "VORuntimeError", "VisualOdometry", "load_camera", "write_trajectory",
+    "StreamFrame", "VOConfig", "VOResult", "VORuntimeError", "VisualOdometry", "load_camera", "write_trajectory",
 ]

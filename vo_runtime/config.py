@@ -1,4 +1,5 @@
-"""`VOConfig` (the tuning knobs of `MonoVO`, named and visible) and `VOResult` (what one frame returns)."""
+"""`VOConfig` (the tuning knobs of `MonoVO`, named and visible), `VOResult` (what one frame returns) and
+`Extraction` (a frame's features before it is tracked)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -6,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vo_runtime.errors import VORuntimeError
+from vo_runtime.features import Features
 from vo_runtime.mapping import MappingConfig
 
 
@@ -87,3 +89,15 @@ class VOResult:
     #                          or on the worker thread with VOConfig.mapping_thread
     match_ms: float = 0.0    # of track_ms: guided matching against the local map
     pose_ms: float = 0.0     # of track_ms: pose refinement on those matches
+
+
+@dataclass
+class Extraction:
+    """One frame after `MonoVO.extract`: its features, or why it cannot be used (``usable``: it passed
+    `check_frame`, so its size is checked against the calibration before it is skipped)."""
+
+    image: np.ndarray | None
+    features: Features | None
+    problem: str | None = None
+    usable: bool = True
+    seconds: float = 0.0

@@ -31,13 +31,13 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
 from vo_runtime.background import Background
 from vo_runtime.camera import Camera
-from vo_runtime.config import VOConfig, VOResult
+from vo_runtime.config import Extraction, VOConfig, VOResult
 from vo_runtime.errors import CalibrationError, FrameError
 from vo_runtime.features import FeatureExtractor, Features, check_frame, to_gray_u8
 from vo_runtime.geometry import camera_centre, invert_pose, per_frame_motion
@@ -105,31 +105,62 @@ class MonoVO:
         `CalibrationError` for a frame of another size than the calibration's (or the first frame's), and
         `FrameError` for an argument that is not an image array at all (a programming error).
         """
+        extraction = self.extract(image, extract=False)
+        if extraction.usable:  # a frame of the wrong size raises before the extractor sees it
+            self._check_size(*image.shape[:2])
+            extraction = self.extract(image)
+        return self.process_extraction(extraction, timestamp)
+
+    def stream(self, frames: Iterable, ahead: int = 2, skip_wrong_size: bool = False) -> Iterator[VOResult]:
+        """Track a stream of frames, extracting up to ``ahead`` frames ahead on a worker thread while this
+        one tracks (`pipeline.py`; 0: one after the other, as `process`). Items are ``(image, timestamp)``
+        pairs or `StreamFrame`s (whose image may be a loader run on the worker). Yields each frame's result
+        in order; the poses are those of `process`. With ``skip_wrong_size`` a frame of another size is
+        skipped instead of raising `CalibrationError`."""
+        from vo_runtime.pipeline import track_stream
+
+        return track_stream(self, frames, ahead, skip_wrong_size)
+
+    def extract(self, image: np.ndarray | None, extract: bool = True) -> Extraction:
+        """Check one frame and run the extractor on it (with ``extract`` False: only check it). It reads and
+        writes no state of the VO, so `stream` runs it on a worker thread; `process_extraction` then tracks
+        the frame."""
         if image is not None and not isinstance(image, np.ndarray):
             raise FrameError(f"expected an HxW or HxWx3 image array, got {type(image).__name__}")
         try:
             check_frame(image)
         except FrameError as exc:
-            return self.skip(str(exc), timestamp)
-        self._check_size(*image.shape[:2])
-        index = len(self.results)
+            return Extraction(image, None, str(exc), usable=False)
+        if not extract:
+            return Extraction(image, None)
         start = time.perf_counter()
         try:
             features = self.extractor(image)
         except FrameError as exc:  # e.g. an extractor whose resize policy rejects this size
-            return self.skip(str(exc), timestamp)
+            return Extraction(image, None, str(exc))
+        return Extraction(image, features, seconds=time.perf_counter() - start)
+
+    def process_extraction(self, extraction: Extraction, timestamp: float | None = None) -> VOResult:
+        """Track a frame whose features `extract` found (see `process`)."""
+        image, features = extraction.image, extraction.features
+        if not extraction.usable:
+            return self.skip(extraction.problem, timestamp)
+        self._check_size(*image.shape[:2])
+        if features is None:
+            return self.skip(extraction.problem, timestamp)
+        index = len(self.results)
         if self._frame_size is None:
             self._frame_size = image.shape[:2]
             self._set_pixel_unit(detector_pixel(self.extractor, *image.shape[:2]))
-        extracted = time.perf_counter()
+        start = time.perf_counter()
         self._background.wait()  # the last keyframe's mapping, when it runs on the worker thread
         result = VOResult(index=index, timestamp=timestamp, pose=np.eye(4), status=INITIALISING,
                           num_features=len(features), num_matches=0, num_inliers=0, num_landmarks=0,
-                          extract_ms=1e3 * (extracted - start), track_ms=0.0)
+                          extract_ms=1e3 * extraction.seconds, track_ms=0.0)
         self._poses_cw.append(self._poses_cw[-1].copy() if self._poses_cw else np.eye(4))
         self._track(index, features, result, image)
         result.pose = invert_pose(self._poses_cw[index])
-        result.track_ms = 1e3 * (time.perf_counter() - extracted)
+        result.track_ms = 1e3 * (time.perf_counter() - start)
         self.results.append(result)
         if self._mapping_job is not None:  # started only now, so it sees this frame's result
             job, self._mapping_job = self._mapping_job, None
