@@ -186,8 +186,9 @@ def test_frame_without_features_is_skipped_and_pose_held():
 
 def test_unmatched_frame_loses_tracking_then_reinitialises_at_the_old_speed():
     poses = straight_then_turn(60)
-    # Relocalisation off: the only way back is a fresh two-view initialisation.
-    vo = run(SyntheticExtractor(poses, scramble=frozenset({30})), 60, VOConfig(relocalise_keyframes=0))
+    # Relocalisation and the motion model after a loss off: the only way back is a fresh initialisation.
+    vo = run(SyntheticExtractor(poses, scramble=frozenset({30})), 60,
+             VOConfig(relocalise_keyframes=0, lost_predict_frames=0))
     statuses = [r.status for r in vo.results]
     assert statuses[30] == LOST
     assert REINITIALISED in statuses[31:]
@@ -200,9 +201,28 @@ def test_unmatched_frame_loses_tracking_then_reinitialises_at_the_old_speed():
     assert after == pytest.approx(before, rel=0.05)
 
 
+@pytest.mark.parametrize("bad", [{30}, {30, 31}])
+def test_after_a_loss_the_motion_model_tracks_the_next_good_frame_against_the_map(bad):
+    poses = straight_then_turn(60)
+    # Relocalisation off, so only the prediction can bring the next good frame back into the same map.
+    vo = run(SyntheticExtractor(poses, scramble=frozenset(bad)), 60, VOConfig(relocalise_keyframes=0))
+    statuses = [r.status for r in vo.results]
+    back = max(bad) + 1
+    assert all(statuses[i] == LOST for i in bad) and statuses[back] == TRACKING
+    assert REINITIALISED not in statuses and all(s == TRACKING for s in statuses[back:])
+    first = tracked(vo)[0]
+    good = [i for i in range(first, 60) if i not in bad]
+    rmse, _ = ate([vo.results[i].pose for i in good], [poses[i] for i in good])
+    assert rmse < 1e-3
+    # Beyond lost_predict_frames the prediction is no longer trusted: a fresh initialisation instead.
+    vo = run(SyntheticExtractor(poses, scramble=frozenset(bad)), 60,
+             VOConfig(relocalise_keyframes=0, lost_predict_frames=len(bad)))
+    assert REINITIALISED in [r.status for r in vo.results]
+
+
 def test_unmatched_frame_is_relocalised_against_the_map_at_the_right_pose():
     poses = straight_then_turn(60)
-    vo = run(SyntheticExtractor(poses, scramble=frozenset({30, 31})), 60)
+    vo = run(SyntheticExtractor(poses, scramble=frozenset({30, 31})), 60, VOConfig(lost_predict_frames=0))
     statuses = [r.status for r in vo.results]
     assert statuses[30] == statuses[31] == LOST
     assert statuses[32] == RELOCALISED and vo.results[32].tracked_by == "relocalisation"

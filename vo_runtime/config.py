@@ -39,6 +39,10 @@ class VOConfig:
     keyframe_min_gap: int = 1            # ... but not sooner than this many frames after the last
     relocalise_keyframes: int = 5        # recent keyframes a lost frame tries to relocalise against (0: never)
     relocalise_frames: int = 3           # failed relocalisations before a fresh initialisation may start
+    # After a loss the motion model keeps predicting for this many frames since the last tracked one, and
+    # tracking against the local map is tried before relocalisation: one bad frame (a noise burst in the
+    # dark) does not throw away the map's prediction (0: relocalisation only).
+    lost_predict_frames: int = 3
     initial_baseline: float = 1.0        # length of the first baseline, in output units
     # Patch alignment (`refine.py`): matched keypoints move onto the patch around the landmark's latest
     # keyframe observation (window in frame pixels; 0: off) before the pose and new landmarks are computed.

@@ -83,6 +83,7 @@ class MonoVO:
         self._local_ids = np.zeros(0, np.int64)      # landmarks of the local map (cached per reference)
         self._previous: tuple[FrameData, np.ndarray] | None = None  # last tracked frame and its landmarks
         self._last_tracked = -1
+        self._lost_since = -1                        # first frame of the current loss (-1: not lost)
         self._velocity = np.eye(4)                   # last inter-frame motion (world-to-camera increment)
         self._speed: float | None = None             # world units per frame, for re-initialisation
         self._lost_tries = 0
@@ -215,7 +216,8 @@ class MonoVO:
         frame = FrameData.build(self.camera.normalise(pixels), pixels, features.descriptors)
         if self._aligner is not None:
             frame.gray = to_gray_u8(image)
-        if mapped and self._last_tracked >= 0:
+        lost = self._lost_since >= 0
+        if mapped and self._last_tracked >= 0 and (not lost or index - self._last_tracked <= cfg.lost_predict_frames):
             settings = self._settings(frame)
             outcome = track_frame(self.map, self._local_ids, self._predict(index), frame, self._previous, settings)
             result.match_ms = 1e3 * settings.seconds["matching"]
@@ -223,10 +225,11 @@ class MonoVO:
             if outcome is not None:
                 self._accept(index, frame, outcome, TRACKING, result)
                 return
-            self._last_tracked = -1  # lost: relocalise from the next frame on
-            self._lost_tries = 0
-            self._initialiser.restart(index, frame, features)
-            return
+            if not lost:  # lost: relocalise from the next frame on (the motion model is still tried first)
+                self._lost_since = index
+                self._lost_tries = 0
+                self._initialiser.restart(index, frame, features)
+                return
         if mapped and cfg.relocalise_keyframes > 0:
             outcome = self._relocalise(frame)
             if outcome is not None:
@@ -278,7 +281,7 @@ class MonoVO:
                                                       self.camera.normalise):
             refit_pose(self.map, frame, outcome, self._settings(frame))
         pose = outcome.pose_cw
-        if self._last_tracked >= 0:
+        if self._last_tracked >= 0 and (self._lost_since < 0 or status == TRACKING):
             gap = index - self._last_tracked
             step = pose @ invert_pose(self._poses_cw[self._last_tracked])
             self._velocity = step if gap == 1 else self._velocity
@@ -287,6 +290,7 @@ class MonoVO:
             self._velocity = np.eye(4)  # after a relocalisation the motion is unknown
         self._poses_cw[index] = pose
         self._last_tracked = index
+        self._lost_since = -1
         self._previous = (frame, outcome.landmark)
         result.status, result.tracked_by = status, outcome.source
         result.num_matches, result.num_inliers = outcome.matches, outcome.inliers
@@ -370,6 +374,7 @@ class MonoVO:
         self._set_reference(1)
         self._previous = (current, self.map.keyframes[1].landmark)
         self._last_tracked = index
+        self._lost_since = -1
         self._velocity = per_frame_motion(self._poses_cw[index] @ invert_pose(self._poses_cw[outcome.reference_index]),
                                           index - outcome.reference_index)
         self._speed = outcome.speed
