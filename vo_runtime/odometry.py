@@ -15,7 +15,9 @@ States of a frame (``VOResult.status``), and what moves between them:
   runs the local bundle adjustment over keyframes and culls bad landmarks (`mapping.py`), inline or, with
   ``VOConfig.mapping_thread``, on a worker thread while the next frame is extracted (`background.py`).
 - ``lost``: every search failed (or the frame had too few features). The pose is held; the next frames
-  first try to relocalise against recent keyframes (`relocalise.py`) -> ``relocalised``, and after
+  are tracked against the local map from the motion model while the last tracked frame is at most
+  ``lost_predict_frames`` back (-> ``tracking``), then try to relocalise against recent keyframes
+  (`relocalise.py`) -> ``relocalised``, and after
   ``relocalise_frames`` failed tries also start a fresh two-view initialisation, scaled by the speed
   measured before the loss -> ``reinitialised`` (a new map; the old one is dropped).
 - ``skipped``: the frame could not be used (None, empty, an unusable shape or dtype, NaN/inf:
