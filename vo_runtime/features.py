@@ -175,3 +175,12 @@ class OrbExtractor:
         unit = (2.0 * bits - 1.0) / np.sqrt(bits.shape[1])
         points = np.array([kp.pt for kp in keypoints], dtype=np.float32)
         return Features(points[order], scores[order], unit[order])
+
+
+def detector_pixel(extractor: object, height: int, width: int) -> float:
+    """Frame pixels per detector pixel: an artefact that resizes frames to its input (``width`` x ``height``
+    attributes) localises keypoints to its own pixels, so pixel thresholds are meant in those; 1 otherwise."""
+    input_width, input_height = getattr(extractor, "width", None), getattr(extractor, "height", None)
+    if not isinstance(input_width, int) or not isinstance(input_height, int) or input_width <= 0 or input_height <= 0:
+        return 1.0
+    return max(1.0, width / input_width, height / input_height)

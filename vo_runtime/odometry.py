@@ -41,7 +41,7 @@ from vo_runtime.background import Background
 from vo_runtime.camera import Camera
 from vo_runtime.config import Extraction, VOConfig, VOResult
 from vo_runtime.errors import CalibrationError, FrameError
-from vo_runtime.features import FeatureExtractor, Features, check_frame, to_gray_u8
+from vo_runtime.features import FeatureExtractor, Features, check_frame, detector_pixel, to_gray_u8
 from vo_runtime.geometry import camera_centre, invert_pose, per_frame_motion
 from vo_runtime.initialiser import Initialiser
 from vo_runtime.localmap import Keyframe, LocalMap
@@ -385,15 +385,6 @@ class MonoVO:
         result.keyframe = True
         result.num_inliers = outcome.inliers
         result.num_landmarks = len(outcome.world)
-
-
-def detector_pixel(extractor: object, height: int, width: int) -> float:
-    """Frame pixels per detector pixel: an artefact that resizes frames to its input (``width`` x ``height``
-    attributes) localises keypoints to its own pixels, so pixel thresholds are meant in those; 1 otherwise."""
-    input_width, input_height = getattr(extractor, "width", None), getattr(extractor, "height", None)
-    if not isinstance(input_width, int) or not isinstance(input_height, int) or input_width <= 0 or input_height <= 0:
-        return 1.0
-    return max(1.0, width / input_width, height / input_height)
 
 
 class VisualOdometry(MonoVO):
