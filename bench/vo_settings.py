@@ -3,6 +3,7 @@
     python bench/vo_settings.py                                   # the defaults, normal and low light
     python bench/vo_settings.py --set align_gain=2 --set keyframe_min_tracked=50   # a variant
     python bench/vo_settings.py --features orb --light normal     # ORB in the same pipeline
+    python bench/vo_settings.py --artefact out/cpu-500            # another export (e.g. another keypoint budget)
 
 Single runs of these 20-160-frame sequences move by tens of centimetres with any change (docs/vo.md), so a
 setting is judged on the geometric mean of the ATE over many starts: KITTI 07 from frames 0, 10, ..., 130,
@@ -31,14 +32,15 @@ STARTS = {
 
 
 def run(job: tuple) -> dict:
-    data, name, features, light, start, overrides = job
+    data, name, features, light, start, overrides, artefact = job
     import cv2
 
     cv2.setNumThreads(1)
     import eval_vo
     from vo_runtime.artefact import default_artefact
 
-    return eval_vo.run_one(data / name, features, light, 2000, overrides, default_artefact(), None, None, start)
+    return eval_vo.run_one(data / name, features, light, 2000, overrides, artefact or default_artefact(), None, None,
+                           start)
 
 
 def main() -> int:
@@ -47,12 +49,13 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=ROOT.parent / "shared/data")
     parser.add_argument("--features", default="artefact", choices=["artefact", "orb"])
+    parser.add_argument("--artefact", type=Path, help="another artefact directory (default: the shipped one)")
     parser.add_argument("--light", default="normal,low", help="normal and/or low")
     parser.add_argument("--set", action="append", default=[], help="VOConfig field=value (JSON; mapping.FIELD too)")
     parser.add_argument("--workers", type=int, default=2)
     args = parser.parse_args()
     overrides = eval_vo.parse_overrides(args.set)
-    jobs = [(args.data, name, args.features, light, start, overrides)
+    jobs = [(args.data, name, args.features, light, start, overrides, args.artefact)
             for light in args.light.split(",") for name, starts in STARTS[light].items() for start in starts]
     began = time.perf_counter()
     with ProcessPoolExecutor(max(1, args.workers)) as pool:
