@@ -93,4 +93,4 @@ def test_a_consumer_that_stops_early_leaves_no_thread_and_the_vo_usable(kitti):
     assert len(vo.results) == 6  # the frames extracted ahead were dropped, not tracked
     assert vo.process(frames[6], sequence.timestamps[6]).index == 6
     with pytest.raises(VORuntimeError, match="ahead"):
-        next(vo.stream(zip(frames, sequence.timestamps), ahead=-1))
+        vo.stream(zip(frames, sequence.timestamps), ahead=-1)  # refused at the call, before any frame

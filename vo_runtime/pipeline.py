@@ -66,11 +66,14 @@ def _named(frame: StreamFrame, problem: str | None) -> str:
 
 
 def track_stream(vo: MonoVO, frames: Iterable, ahead: int = 2, skip_wrong_size: bool = False) -> Iterator[VOResult]:
-    """Yield `vo`'s result for each frame of ``frames``, extracting up to ``ahead`` frames in front on a
-    worker thread (0: inline). See `MonoVO.stream`."""
-    if not isinstance(ahead, (int, np.integer)) or ahead < 0:
+    """An iterator over `vo`'s result for each frame of ``frames``, extracting up to ``ahead`` frames in
+    front on a worker thread (0: inline). See `MonoVO.stream`; a bad ``ahead`` raises here, at once."""
+    if isinstance(ahead, bool) or not isinstance(ahead, (int, np.integer)) or ahead < 0:
         raise VORuntimeError(f"ahead must be an integer >= 0, got {ahead!r}")
-    items = iter(frames)
+    return _results(vo, iter(frames), int(ahead), skip_wrong_size)
+
+
+def _results(vo: MonoVO, items: Iterator, ahead: int, skip_wrong_size: bool) -> Iterator[VOResult]:
     executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vo-extract") if ahead > 0 else None
     pending: deque[tuple[StreamFrame, Future | None]] = deque()
 
@@ -91,11 +94,12 @@ def track_stream(vo: MonoVO, frames: Iterable, ahead: int = 2, skip_wrong_size: 
             if extraction.problem is not None:
                 extraction.problem = _named(frame, extraction.problem)
             try:
-                yield vo.process_extraction(extraction, frame.timestamp)
+                result = vo.process_extraction(extraction, frame.timestamp)
             except CalibrationError as exc:
                 if not skip_wrong_size:
                     raise
-                yield vo.skip(_named(frame, str(exc)), frame.timestamp)
+                result = vo.skip(_named(frame, str(exc)), frame.timestamp)
+            yield result
     finally:
         for _, future in pending:  # a consumer that stops early: drop the frames not yet tracked
             if future is not None:
