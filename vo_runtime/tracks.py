@@ -17,11 +17,12 @@ class Tracks:
         self.landmarks = np.full((n, 3), np.nan)  # world points, NaN where none
         self.angles = np.zeros(n)                 # ray angle when last triangulated (degrees)
         self.ids = track_ids(frame_index, np.arange(n))  # unique per track, for bundle adjustment
+        self.resumed = np.zeros(n, bool)          # found again by a direct match after its chain broke
 
     def extend(self, previous: "Tracks", matches: np.ndarray) -> None:
         """Carry matched tracks over from the previous frame (matches: prev row, this row)."""
         i, j = matches[:, 0], matches[:, 1]
-        for name in ("first_points", "first_pixels", "first_frame", "landmarks", "angles", "ids"):
+        for name in ("first_points", "first_pixels", "first_frame", "landmarks", "angles", "ids", "resumed"):
             getattr(self, name)[j] = getattr(previous, name)[i]
 
     def restart(self, rows: np.ndarray, frame_index: int) -> None:
@@ -32,6 +33,19 @@ class Tracks:
         self.landmarks[rows] = np.nan
         self.angles[rows] = 0.0
         self.ids[rows] = track_ids(frame_index, rows)
+        self.resumed[rows] = False
+
+    def resume(self, rows: np.ndarray, frame_index: int, first_rows: np.ndarray, first_points: np.ndarray,
+               first_pixels: np.ndarray) -> None:
+        """Make `rows` continue the tracks that began at ``first_rows`` of frame ``frame_index`` (found again
+        by a direct match), without landmarks."""
+        self.first_points[rows] = first_points
+        self.first_pixels[rows] = first_pixels
+        self.first_frame[rows] = frame_index
+        self.landmarks[rows] = np.nan
+        self.angles[rows] = 0.0
+        self.ids[rows] = track_ids(frame_index, first_rows)
+        self.resumed[rows] = True
 
     @property
     def has_landmark(self) -> np.ndarray:
