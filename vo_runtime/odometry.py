@@ -108,11 +108,11 @@ class MonoVO:
         `CalibrationError` for a frame of another size than the calibration's (or the first frame's), and
         `FrameError` for an argument that is not an image array at all (a programming error).
         """
-        extraction = self.extract(image, extract=False)
-        if extraction.usable:  # a frame of the wrong size raises before the extractor sees it
-            self._check_size(*image.shape[:2])
-            extraction = self.extract(image)
-        return self.process_extraction(extraction, timestamp)
+        unusable = self._unusable(image)
+        if unusable is not None:
+            return self.process_extraction(unusable, timestamp)
+        self._check_size(*image.shape[:2])  # a frame of the wrong size raises before the extractor sees it
+        return self.process_extraction(self._run_extractor(image), timestamp)
 
     def stream(self, frames: Iterable, ahead: int = 2, skip_wrong_size: bool = False) -> Iterator[VOResult]:
         """Track a stream of frames, extracting up to ``ahead`` frames ahead on a worker thread while this
@@ -124,18 +124,23 @@ class MonoVO:
 
         return track_stream(self, frames, ahead, skip_wrong_size)
 
-    def extract(self, image: np.ndarray | None, extract: bool = True) -> Extraction:
-        """Check one frame and run the extractor on it (with ``extract`` False: only check it). It reads and
-        writes no state of the VO, so `stream` runs it on a worker thread; `process_extraction` then tracks
-        the frame."""
+    def extract(self, image: np.ndarray | None) -> Extraction:
+        """Check one frame and run the extractor on it. It reads and writes no state of the VO, so `stream`
+        runs it on a worker thread; `process_extraction` then tracks the frame."""
+        return self._unusable(image) or self._run_extractor(image)
+
+    @staticmethod
+    def _unusable(image: np.ndarray | None) -> Extraction | None:
+        """The frame as an unusable `Extraction` when `check_frame` refuses it, else None."""
         if image is not None and not isinstance(image, np.ndarray):
             raise FrameError(f"expected an HxW or HxWx3 image array, got {type(image).__name__}")
         try:
             check_frame(image)
         except FrameError as exc:
             return Extraction(image, None, str(exc), usable=False)
-        if not extract:
-            return Extraction(image, None)
+        return None
+
+    def _run_extractor(self, image: np.ndarray) -> Extraction:
         start = time.perf_counter()
         try:
             features = self.extractor(image)

@@ -61,8 +61,8 @@ def _extract(vo: MonoVO, frame: StreamFrame) -> Extraction:
     return vo.extract(image)
 
 
-def _named(frame: StreamFrame, problem: str | None) -> str:
-    return f"{frame.name}: {problem}" if frame.name else str(problem)
+def _named(frame: StreamFrame, problem: str) -> str:
+    return f"{frame.name}: {problem}" if frame.name else problem
 
 
 def track_stream(vo: MonoVO, frames: Iterable, ahead: int = 2, skip_wrong_size: bool = False) -> Iterator[VOResult]:

@@ -27,25 +27,23 @@ class Tracks:
 
     def restart(self, rows: np.ndarray, frame_index: int) -> None:
         """Make `rows` begin afresh at this frame, without landmarks."""
-        self.first_points[rows] = self.points[rows]
-        self.first_pixels[rows] = self.pixels[rows]
-        self.first_frame[rows] = frame_index
-        self.landmarks[rows] = np.nan
-        self.angles[rows] = 0.0
-        self.ids[rows] = track_ids(frame_index, rows)
-        self.resumed[rows] = False
+        self._begin(rows, frame_index, rows, self.points[rows], self.pixels[rows], resumed=False)
 
     def resume(self, rows: np.ndarray, frame_index: int, first_rows: np.ndarray, first_points: np.ndarray,
                first_pixels: np.ndarray) -> None:
         """Make `rows` continue the tracks that began at ``first_rows`` of frame ``frame_index`` (found again
         by a direct match), without landmarks."""
+        self._begin(rows, frame_index, first_rows, first_points, first_pixels, resumed=True)
+
+    def _begin(self, rows: np.ndarray, frame_index: int, first_rows: np.ndarray, first_points: np.ndarray,
+               first_pixels: np.ndarray, resumed: bool) -> None:
         self.first_points[rows] = first_points
         self.first_pixels[rows] = first_pixels
         self.first_frame[rows] = frame_index
         self.landmarks[rows] = np.nan
         self.angles[rows] = 0.0
         self.ids[rows] = track_ids(frame_index, first_rows)
-        self.resumed[rows] = True
+        self.resumed[rows] = resumed
 
     @property
     def has_landmark(self) -> np.ndarray:
