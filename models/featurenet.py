@@ -5,6 +5,7 @@ Layout (default widths, 240x320 input):
     stem 3x3 conv 1->16 (H)            | maxpool
     DS blocks at H/2, H/4, H/8         | maxpool between stages
     DeformableConv 3x3 at H/8          | offsets from a depthwise-separable branch
+    context blocks at H/8 (optional)   | inverted residual: 1x1 expand, depthwise 3x3, 1x1 project, + x
     detector head   DS block -> 1x1 -> 65 logits per 8x8 cell (64 pixels + dustbin)
                     + cell-pixel head: the cell's own 64 pixels, contrast-normalised, through 1x1 convs
     descriptor head DS block -> 1x1 -> 256-d, L2-normalised
@@ -98,6 +99,8 @@ class FeatureNetConfig:
     deform_depthwise: bool = False  # depthwise deformable 3x3 + pointwise 1x1 instead of a dense deformable 3x3
     deform_fraction: float = 1.0  # depthwise only: share of channels sampled at the offsets (the rest: plain 3x3)
     pixel_head_channels: int = 64  # width of the cell-pixel keypoint head; 0 = no such head
+    context_blocks: int = 0  # inverted residual blocks at H/8, after the deformable conv, before the heads
+    context_channels: int = 256  # their expanded width
 
     def __post_init__(self) -> None:
         if len(self.widths) != 4 or len(self.blocks) != 4:
@@ -108,6 +111,9 @@ class FeatureNetConfig:
             raise ValueError(f"activation must be one of {ACTIVATIONS}, got {self.activation!r}")
         if int(self.pixel_head_channels) < 0:
             raise ValueError("pixel_head_channels must be >= 0")
+        if int(self.context_blocks) < 0 or int(self.context_channels) < 1:
+            raise ValueError("context_blocks must be >= 0 and context_channels >= 1")
+        self.context_blocks, self.context_channels = int(self.context_blocks), int(self.context_channels)
         self.pixel_head_channels = int(self.pixel_head_channels)
         if self.deform_scale not in (2, 3):
             raise ValueError("deform_scale must be 2 (H/4) or 3 (H/8)")
@@ -125,6 +131,31 @@ def _channels_after(cfg: FeatureNetConfig, scale: int) -> int:
         if cfg.blocks[index]:
             channels = cfg.widths[index]
     return channels
+
+
+class InvertedResidualBlock(nn.Module):
+    """x + BN(1x1(act(BN(dw3x3(act(BN(1x1(x)))))))): expand to ``hidden`` channels, depthwise 3x3, project
+    back. [B, C, H, W] -> [B, C, H, W].
+
+    The last BN's scale starts at zero, so a new block is the identity: blocks added to a trained network
+    leave its outputs unchanged until training gives them a use (capacity grown without a restart).
+    """
+
+    def __init__(self, channels: int, hidden: int, activation: str) -> None:
+        super().__init__()
+        self.expand = nn.Conv2d(channels, hidden, 1, bias=False)
+        self.expand_bn = nn.BatchNorm2d(hidden)
+        self.depthwise = nn.Conv2d(hidden, hidden, 3, padding=1, groups=hidden, bias=False)
+        self.depthwise_bn = nn.BatchNorm2d(hidden)
+        self.project = nn.Conv2d(hidden, channels, 1, bias=False)
+        self.project_bn = nn.BatchNorm2d(channels)
+        self.activation = make_activation(activation)
+        nn.init.zeros_(self.project_bn.weight)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.activation(self.expand_bn(self.expand(x)))
+        y = self.activation(self.depthwise_bn(self.depthwise(y)))
+        return x + self.project_bn(self.project(y))
 
 
 class CellContrast(nn.Module):
@@ -212,6 +243,10 @@ class FeatureNet(nn.Module):
                                          depthwise=cfg.deform_depthwise, deform_fraction=cfg.deform_fraction)
             self.deform_bn = nn.BatchNorm2d(deform_channels)
             self.deform_act = make_activation(act)
+        if cfg.context_blocks:
+            self.context = nn.Sequential(
+                *(InvertedResidualBlock(channels, cfg.context_channels, act) for _ in range(cfg.context_blocks))
+            )
         self.detector = nn.Sequential(
             DepthwiseSeparableBlock(channels, cfg.head_channels, act), nn.Conv2d(cfg.head_channels, 65, 1)
         )
@@ -243,6 +278,8 @@ class FeatureNet(nn.Module):
                 x = stage(x)
             if self.config.deformable and scale == self.config.deform_scale:
                 x = self.deform_act(self.deform_bn(self.deform(x)))
+        if self.config.context_blocks:
+            x = self.context(x)
         return x
 
     def forward(self, image: torch.Tensor, for_keypoints: bool = False) -> dict[str, torch.Tensor]:

@@ -180,7 +180,14 @@ def config_of(model: FeatureNet) -> FeatureNetConfig:
         if len(pixel_widths) > 1:
             raise ToolkitError(f"pruned cell-pixel head has unequal widths {sorted(pixel_widths)}; the config cannot express it")
         pixel = pixel_widths.pop()
-    return replace(base, widths=widths, head_channels=heads.pop(), pixel_head_channels=pixel)
+    context = base.context_channels
+    if base.context_blocks:
+        hidden = {block.expand.out_channels for block in model.context}
+        if len(hidden) > 1:
+            raise ToolkitError(f"pruned context blocks have unequal widths {sorted(hidden)}; the config cannot express it")
+        context = hidden.pop()
+    return replace(base, widths=widths, head_channels=heads.pop(), pixel_head_channels=pixel,
+                   context_channels=context)
 
 
 def rebuild(model: FeatureNet) -> FeatureNet:

@@ -119,6 +119,16 @@ def dense_to_depthwise_deform(state: dict, model: torch.nn.Module) -> dict:
     return {**state, **{prefix + key: value for key, value in converted.items()}}
 
 
+def grow_context_blocks(state: dict, model: torch.nn.Module) -> dict:
+    """``state`` completed with ``model``'s freshly initialised context blocks when ``state`` has none (a
+    checkpoint from before they were added). New blocks start as the identity (`InvertedResidualBlock`),
+    so the grown network computes what the source did; blocks present in ``state`` are used as they are."""
+    own = {key: value for key, value in model.state_dict().items() if key.startswith("context.")}
+    if not own or any(key.startswith("context.") for key in state):
+        return state
+    return {**state, **own}
+
+
 def initialise_from(source: str, model: torch.nn.Module, projection: torch.nn.Module | None) -> None:
     """Load starting weights for a new run (fresh optimizer and schedule: a fine-tune, not a resume).
 
@@ -132,12 +142,12 @@ def initialise_from(source: str, model: torch.nn.Module, projection: torch.nn.Mo
     try:
         if path.is_dir():
             state = _load_state(path / "train_state.pt", "cannot initialise")
-            model.load_state_dict(dense_to_depthwise_deform(state["model"], model))
+            model.load_state_dict(grow_context_blocks(dense_to_depthwise_deform(state["model"], model), model))
             if projection is not None and state.get("projection"):
                 projection.load_state_dict(state["projection"])
         else:
             loaded, _ = load_checkpoint(path)
-            model.load_state_dict(dense_to_depthwise_deform(loaded.state_dict(), model))
+            model.load_state_dict(grow_context_blocks(dense_to_depthwise_deform(loaded.state_dict(), model), model))
     except CheckpointError as exc:
         raise ToolkitError(f"cannot initialise: {exc}") from None
     except (KeyError, RuntimeError) as exc:
