@@ -7,6 +7,7 @@ import json
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -133,6 +134,34 @@ def test_pairs_carry_teacher_descriptors_and_labels_to_the_same_scene_points(cac
         nearest = (a @ b.T).argmax(dim=1)
         accuracy = (nearest == torch.arange(len(b))).float().mean()
         assert same > 0.8 and accuracy > 0.5, (float(same), float(accuracy), len(b))
+
+
+def test_images_kept_finer_show_the_same_scene_with_real_detail(cache) -> None:
+    # `scales.detail` keeps images at 2x the label size: the same sample id must show the same scene at the
+    # same place with the same labels (only sharper where a view enlarges the image).
+    images, labels = cache
+    store = LabelStore.open(labels)
+    coarse, _ = load_labelled_images(images, store)
+    fine, _ = load_labelled_images(images, store, detail=2.0)
+    assert fine[0].gray.shape == (128, 192) and coarse[0].gray.shape == (64, 96)
+    scales = MultiScaleConfig(sizes=[[64, 96]], max_zoom=2.5)
+    pairs = [DistillPairs(records, store, scales, HomographyConfig(), None, seed=5, ids_per_step=1)
+             for records in (coarse, fine)]
+    sharper = 0
+    for sample_id in range(6):
+        a, b = pairs[0][sample_id], pairs[1][sample_id]
+        for key in ("labels_a", "labels_b", "valid_b", "teacher_a", "homography"):
+            assert torch.equal(a[key], b[key]), key
+        view, finer = a["image_a"][0].numpy(), b["image_a"][0].numpy()
+        energy = [float(np.abs(np.diff(v, axis=1)).mean()) for v in (view, finer)]
+        sharper += energy[1] > energy[0]
+        # Blurred alike (the fine view has detail the coarse one lacks), they agree best where unshifted.
+        view, finer = (cv2.GaussianBlur(v, (0, 0), 1.5) for v in (view, finer))
+        error = {(dy, dx): np.abs(view[4 + dy : -4 + dy, 4 + dx : -4 + dx] - finer[4:-4, 4:-4]).mean()
+                 for dy in (-1, 0, 1) for dx in (-1, 0, 1)}
+        nearest_shift = min(value for shift, value in error.items() if shift != (0, 0))
+        assert error[(0, 0)] < 0.7 * nearest_shift, error
+    assert sharper >= 4  # most views enlarge the image: the finer source shows more structure
 
 
 def test_a_short_distill_run_trains_and_picks_the_best_by_matching_score(cache, tmp_path: Path) -> None:

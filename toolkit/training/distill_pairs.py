@@ -36,6 +36,9 @@ class MultiScaleConfig:
 
     sizes: list[list[int]] = field(default_factory=lambda: [[120, 160], [176, 232], [240, 320]])
     max_zoom: float = 1.6  # view a may enlarge the base up to this factor (finer detail per cell)
+    # Images are kept at `detail` x the label size: an enlarged view then shows the photo's own fine
+    # structure (and noise) instead of an interpolated blur, as a 480x640 input does.
+    detail: float = 1.0
 
     def __post_init__(self) -> None:
         self.sizes = [[int(h), int(w)] for h, w in self.sizes]
@@ -43,6 +46,8 @@ class MultiScaleConfig:
             raise ValueError("distill sizes must be [height, width] pairs, multiples of 8, at least 16")
         if not 0.1 <= float(self.max_zoom) <= 8.0:
             raise ValueError("max_zoom must be within [0.1, 8]")
+        if not 1.0 <= float(self.detail) <= 4.0:
+            raise ValueError("detail must be within [1, 4]")
 
 
 def crop_zoom_homography(base: tuple[int, int], size: tuple[int, int], zoom: float, top: float, left: float) -> torch.Tensor:
@@ -56,8 +61,15 @@ def crop_zoom_homography(base: tuple[int, int], size: tuple[int, int], zoom: flo
     ).float()
 
 
+def detail_to_base(detail_shape: tuple[int, int], base: tuple[int, int]) -> torch.Tensor:
+    """[3, 3] pixel of the image kept at detail size -> base pixel (integer pixel centres on both sides)."""
+    sy, sx = base[0] / detail_shape[0], base[1] / detail_shape[1]
+    return torch.tensor([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+
 def render_view(base: np.ndarray, homography: torch.Tensor, size: tuple[int, int], zoom: float) -> np.ndarray:
-    """Warp the base image [Hb, Wb] uint8 into a view of ``size``; blurred first when the view shrinks it."""
+    """Warp the image [Hb, Wb] uint8 into a view of ``size`` (``homography``: image pixel -> view pixel,
+    ``zoom``: view pixels per image pixel); blurred first when the view shrinks it."""
     if zoom < 0.9:  # anti-aliasing: a Gaussian as wide as the shrink factor asks for
         sigma = 0.5 * math.sqrt(1.0 / (zoom * zoom) - 1.0)
         base = cv2.GaussianBlur(base, (0, 0), sigma)
@@ -146,7 +158,9 @@ class DistillPairs(Dataset):
         if record.gray is None:
             raise ToolkitError(f"image {record.path} was not decoded")
         generator = torch.Generator().manual_seed(self.seed * 1_000_003 + sample_id)
-        base = record.gray.shape
+        base = tuple(self.store.size)  # labels and teacher maps live in these pixels
+        detail = detail_to_base(record.gray.shape, base)  # the kept image may be finer than the base
+        factor = record.gray.shape[1] / base[1]
         size = self.size_of(sample_id)
         u = torch.rand(3, generator=generator, dtype=torch.float64).tolist()
         min_zoom = max(size[0] / base[0], size[1] / base[1])  # the whole base fits in the view
@@ -157,8 +171,8 @@ class DistillPairs(Dataset):
         base_to_a = crop_zoom_homography(base, size, zoom, top, left)
         a_to_b = sample_homography(size[0], size[1], self.homography, generator)
         base_to_b = (a_to_b.double() @ base_to_a.double()).float()
-        image_a = torch.from_numpy(render_view(record.gray, base_to_a, size, zoom))[None]
-        image_b = torch.from_numpy(render_view(record.gray, base_to_b, size, zoom))[None]
+        image_a = torch.from_numpy(render_view(record.gray, (base_to_a.double() @ detail).float(), size, zoom / factor))[None]
+        image_b = torch.from_numpy(render_view(record.gray, (base_to_b.double() @ detail).float(), size, zoom / factor))[None]
         ones = np.full(base, 255, np.uint8)
         mask_b = torch.from_numpy(render_view(ones, base_to_b, size, 1.0) > 0.999).float()[None]
 

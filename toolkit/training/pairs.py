@@ -36,11 +36,19 @@ class LabelledImage:
     sha256: str
     keypoints: np.ndarray  # [N, 2] (x, y) at the label size
     scores: np.ndarray  # [N]
-    gray: np.ndarray | None = None  # [H, W] uint8 at the label size, decoded once when the run starts
+    gray: np.ndarray | None = None  # [H, W] uint8 at the label size x detail, decoded once when the run starts
 
 
-def load_labelled_images(folder: str | Path, store: LabelStore) -> tuple[list[LabelledImage], int]:
+def detail_size(size: tuple[int, int], detail: float) -> tuple[int, int]:
+    """The (height, width) an image is kept at: the label size scaled by ``detail``, same aspect."""
+    return max(1, round(size[0] * detail)), max(1, round(size[1] * detail))
+
+
+def load_labelled_images(folder: str | Path, store: LabelStore, detail: float = 1.0) -> tuple[list[LabelledImage], int]:
     """Every readable image under ``folder`` with its labels; (records, number of unreadable files skipped).
+
+    Images are kept at the label store's size times ``detail`` (same centre crop); labels stay in
+    label-size pixels. A ``detail`` above 1 keeps real fine structure for views that enlarge the image.
 
     Raises:
         ToolkitError: no image files, none readable, or readable images without labels in ``store``.
@@ -50,7 +58,7 @@ def load_labelled_images(folder: str | Path, store: LabelStore) -> tuple[list[La
         raise ToolkitError(f"no image files in {folder}")
     records, unreadable, unlabelled = [], 0, []
     for path in files:
-        loaded = read_image(path, store.size)
+        loaded = read_image(path, detail_size(store.size, detail))
         if loaded is None:
             unreadable += 1
             continue
@@ -60,6 +68,7 @@ def load_labelled_images(folder: str | Path, store: LabelStore) -> tuple[list[La
             continue
         keypoints, scores = store.get(sha256)
         # Kept decoded (uint8, ~77 kB at 240x320): decoding and hashing per sample cost ~5 % of a step.
+        # The hash is the file's, so the labels are found whatever size the image is kept at.
         gray = np.round(loaded[0] * 255.0).astype(np.uint8)
         records.append(LabelledImage(path, sha256, keypoints, scores, gray))
     if not records and not unlabelled:

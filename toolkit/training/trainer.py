@@ -193,7 +193,8 @@ def train(config: TrainConfig, images: str, labels: str, run: str | Path, resume
     """
     run = Path(run)
     store = LabelStore.open(labels)
-    records, unreadable = load_labelled_images(images, store)
+    detail = config.scales.detail if config.recipe == "distill" else 1.0
+    records, unreadable = load_labelled_images(images, store, detail)
     rank, world, device = init_distributed(config.device)
     try:
         return _train(config, store, records, unreadable, images, labels, run, resume, rank, world, device)
