@@ -35,9 +35,10 @@ def test_a_new_block_is_the_identity_until_trained():
 
 
 def test_growing_the_shipped_model_keeps_its_outputs(tmp_path):
-    shipped, _ = load_checkpoint(shipped_checkpoint("featurenet-elu"))
+    shipped, _ = load_checkpoint(shipped_checkpoint("featurenet-relu"))
+    assert shipped.config.context_blocks == 0  # a trained model without them, to grow
     grown = FeatureNet(replace(shipped.config, context_blocks=2, context_channels=256))
-    initialise_from(str(shipped_checkpoint("featurenet-elu")), grown, None)
+    initialise_from(str(shipped_checkpoint("featurenet-relu")), grown, None)
     shipped.eval(), grown.eval()
     image = torch.rand(1, 1, 96, 128)
     with torch.no_grad():
