@@ -160,7 +160,6 @@ class DistillPairs(Dataset):
         generator = torch.Generator().manual_seed(self.seed * 1_000_003 + sample_id)
         base = tuple(self.store.size)  # labels and teacher maps live in these pixels
         detail = detail_to_base(record.gray.shape, base)  # the kept image may be finer than the base
-        factor = record.gray.shape[1] / base[1]
         size = self.size_of(sample_id)
         u = torch.rand(3, generator=generator, dtype=torch.float64).tolist()
         min_zoom = max(size[0] / base[0], size[1] / base[1])  # the whole base fits in the view
@@ -171,8 +170,9 @@ class DistillPairs(Dataset):
         base_to_a = crop_zoom_homography(base, size, zoom, top, left)
         a_to_b = sample_homography(size[0], size[1], self.homography, generator)
         base_to_b = (a_to_b.double() @ base_to_a.double()).float()
-        image_a = torch.from_numpy(render_view(record.gray, (base_to_a.double() @ detail).float(), size, zoom / factor))[None]
-        image_b = torch.from_numpy(render_view(record.gray, (base_to_b.double() @ detail).float(), size, zoom / factor))[None]
+        view_zoom = zoom * float(detail[0, 0])  # view pixels per pixel of the kept image
+        image_a = torch.from_numpy(render_view(record.gray, (base_to_a.double() @ detail).float(), size, view_zoom))[None]
+        image_b = torch.from_numpy(render_view(record.gray, (base_to_b.double() @ detail).float(), size, view_zoom))[None]
         ones = np.full(base, 255, np.uint8)
         mask_b = torch.from_numpy(render_view(ones, base_to_b, size, 1.0) > 0.999).float()[None]
 

@@ -129,6 +129,12 @@ def grow_context_blocks(state: dict, model: torch.nn.Module) -> dict:
     return {**state, **own}
 
 
+def adapt_state(state: dict, model: torch.nn.Module) -> dict:
+    """A state dict from an older layout made to fit ``model``: dense deformable kernels to depthwise ones,
+    missing context blocks grown as the identity."""
+    return grow_context_blocks(dense_to_depthwise_deform(state, model), model)
+
+
 def initialise_from(source: str, model: torch.nn.Module, projection: torch.nn.Module | None) -> None:
     """Load starting weights for a new run (fresh optimizer and schedule: a fine-tune, not a resume).
 
@@ -142,12 +148,12 @@ def initialise_from(source: str, model: torch.nn.Module, projection: torch.nn.Mo
     try:
         if path.is_dir():
             state = _load_state(path / "train_state.pt", "cannot initialise")
-            model.load_state_dict(grow_context_blocks(dense_to_depthwise_deform(state["model"], model), model))
+            model.load_state_dict(adapt_state(state["model"], model))
             if projection is not None and state.get("projection"):
                 projection.load_state_dict(state["projection"])
         else:
             loaded, _ = load_checkpoint(path)
-            model.load_state_dict(grow_context_blocks(dense_to_depthwise_deform(loaded.state_dict(), model), model))
+            model.load_state_dict(adapt_state(loaded.state_dict(), model))
     except CheckpointError as exc:
         raise ToolkitError(f"cannot initialise: {exc}") from None
     except (KeyError, RuntimeError) as exc:
