@@ -44,6 +44,7 @@ class ExportOptions:
     precision: str | None = None
     max_keypoints: int | None = None
     nms_radius: int = 4
+    score_window: int = 1  # `models.keypoints.keypoint_scores`; 1 = the peak pixel
     threshold: float = 0.005
     border: int = 4
     dense: bool = False
@@ -94,6 +95,10 @@ def _check_postprocess(options: ExportOptions, size: tuple[int, int]) -> None:
     if not 0 <= options.nms_radius < min(size) // 4:
         raise ToolkitError(f"--nms-radius must be between 0 and {min(size) // 4 - 1} px at {size[0]}x{size[1]}, "
                            f"got {options.nms_radius}")
+    window = options.score_window
+    if not (window >= 1 and window % 2 == 1 and window < min(size) // 4):
+        raise ToolkitError(f"--score-window must be an odd number of pixels between 1 and {min(size) // 4 - 1}, "
+                           f"got {options.score_window}")
 
 
 def export_artefact(options: ExportOptions, log=print) -> Path:
@@ -112,7 +117,8 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
     set_elu_form(net, profile.elu_form)
     torch.manual_seed(0)
 
-    keypoint_module = KeypointGraph(net, height, width, max_keypoints, options.nms_radius, options.threshold, options.border).eval()
+    keypoint_module = KeypointGraph(net, height, width, max_keypoints, options.nms_radius, options.threshold, options.border,
+                                    options.score_window).eval()
     dense_module = DenseGraph(net).eval()
     dummy = torch.zeros(1, 1, height, width)
     log(f"exporting {info.arch} for {profile.name} at {height}x{width}, opset {profile.max_opset}, deform {profile.deform_strategy}")
@@ -162,7 +168,7 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
                       "resize": "cv2.INTER_AREA to the input shape", "resize_policy": "resize"},
             "outputs": _describe_outputs(options.dense, max_keypoints, height, width, net),
             "postprocess": {"max_keypoints": max_keypoints, "nms_radius": options.nms_radius,
-                            "detection_threshold": options.threshold, "border": options.border},
+                            "score_window": options.score_window, "detection_threshold": options.threshold, "border": options.border},
             "parity": {**parity.to_dict(), "required_identical": required, "min_gather_index": lowest_gather},
         }
         (staging / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")

@@ -17,7 +17,8 @@ class KeypointGraph(nn.Module):
     """
 
     def __init__(
-        self, net: nn.Module, height: int, width: int, max_keypoints: int, nms_radius: int, threshold: float, border: int
+        self, net: nn.Module, height: int, width: int, max_keypoints: int, nms_radius: int, threshold: float, border: int,
+        score_window: int = 1,
     ) -> None:
         super().__init__()
         self.net = net
@@ -25,6 +26,7 @@ class KeypointGraph(nn.Module):
         self.nms_radius = int(nms_radius)
         self.threshold = float(threshold)
         self.border = int(border)
+        self.score_window = score_window
         # A stored constant: TensorRT 8.0 cannot parse the ScatterND a traced slice assignment becomes.
         self.register_buffer("border_weights", border_mask(height, width, border, torch.zeros(1)), persistent=False)
 
@@ -32,7 +34,7 @@ class KeypointGraph(nn.Module):
         logits, descriptors, projection = keypoint_heads(self.net, image)
         out = extract_keypoints(
             logits, descriptors, self.max_keypoints, self.nms_radius, self.threshold, self.border,
-            self.border_weights, projection=projection,
+            self.border_weights, projection=projection, score_window=self.score_window,
         )
         return tuple(out[name] for name in KEYPOINT_OUTPUTS)
 

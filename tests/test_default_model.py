@@ -106,3 +106,20 @@ def test_shipped_weights_detect_repeatable_matchable_points(name: str, shared_da
     # A random or untrained network repeats ~0.1-0.2 of its points and matches almost none.
     assert np.mean(repeatabilities) > 0.4, repeatabilities
     assert np.mean(scores) > 0.25 and np.mean(scores) > 5 * np.mean(shuffled_scores) + 0.05, (scores, shuffled_scores)
+
+
+def test_mass_scoring_matches_more_points_at_480x640(shared_data: Path) -> None:
+    # At 480x640 the shipped ELU model spreads a keypoint's probability over neighbouring pixels; ranking by
+    # the 5x5 mass (`--score-window 5`) instead of the peak pixel keeps points that repeat.
+    from toolkit.evaluation.datasets import read_hpatches
+    from toolkit.evaluation.runner import EvalConfig, ImageCache, evaluate_model, summarise
+    from toolkit.evaluation.torch_models import checkpoint_detector
+
+    pairs = read_hpatches(shared_data / "hpatches_v_dogman")
+    config, images = EvalConfig(size=(480, 640)), ImageCache((480, 640))
+    score = {}
+    for window in (1, 5):
+        detector = checkpoint_detector(shipped_checkpoint("featurenet-elu"), DetectorConfig(500, score_window=window), "elu")
+        result = evaluate_model(detector, pairs, config, images)
+        score[window] = summarise([metrics for _, metrics in result.pairs.values()])["matching_score"]
+    assert score[5] > score[1] + 0.02, score

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import torch
 
-from models.keypoints import (extract_keypoints, heatmap_from_logits, max_pool_nms, refine_keypoints, sample_descriptors,
-                              top_k_keypoints)
+from models.keypoints import (extract_keypoints, heatmap_from_logits, keypoint_scores, max_pool_nms, refine_keypoints,
+                              sample_descriptors, top_k_keypoints)
 
 
 def test_heatmap_places_each_cell_channel_at_its_pixel():
@@ -83,3 +83,40 @@ def test_refinement_moves_a_peak_to_the_centroid_of_its_window():
     assert torch.allclose(refined[0], torch.tensor([7.0 + 0.3, 5.0 - 0.1]), atol=1e-6)
     assert torch.equal(refined[1], torch.tensor([3.0, 9.0]))
     assert torch.equal(refined[2], torch.tensor([0.0, 0.0]))  # an empty window (padding rows) does not move
+
+
+def _logits_for(heatmap: torch.Tensor) -> torch.Tensor:
+    """[H, W] pixel probabilities (each 8x8 cell summing below 1) -> [1, 65, H/8, W/8] logits reproducing them."""
+    height, width = heatmap.shape
+    cells = heatmap.reshape(height // 8, 8, width // 8, 8).permute(1, 3, 0, 2).reshape(64, height // 8, width // 8)
+    dustbin = 1.0 - cells.sum(0, keepdim=True)
+    return torch.log(torch.cat([cells, dustbin]).clamp_min(1e-9))[None]
+
+
+def test_mass_ranks_a_spread_keypoint_above_a_sharp_but_weaker_one():
+    heat = torch.zeros(32, 32)
+    heat[9:12, 9:12] = 0.09  # a keypoint the network is sure of but places only to within a pixel: mass 0.81
+    heat[10, 10] = 0.12      # (peak 0.12, mass 0.84)
+    heat[22, 21] = 0.3       # a sharp but weaker one: peak 0.3, mass 0.3
+    scores = keypoint_scores(heat[None, None], 3)[0, 0]
+    assert torch.isclose(scores[10, 10], torch.tensor(0.84)) and torch.isclose(scores[22, 21], torch.tensor(0.3))
+    assert scores[9, 9] == 0 and scores[10, 11] == 0  # not a peak of the heatmap: no candidate
+    assert torch.equal(keypoint_scores(heat[None, None], 1)[0, 0], heat)
+    assert keypoint_scores(heat[None, None], 3, threshold=0.2)[0, 0, 10, 10] == 0  # its peak 0.12 is below
+    descriptors = torch.nn.functional.normalize(torch.randn(1, 8, 4, 4), dim=1)
+    logits = _logits_for(heat)
+    peak = extract_keypoints(logits, descriptors, max_keypoints=2, nms_radius=4, border=4, score_window=1)
+    mass_ranked = extract_keypoints(logits, descriptors, max_keypoints=2, nms_radius=4, border=4, score_window=3)
+    assert peak["keypoints"].tolist() == [[21.0, 22.0], [10.0, 10.0]]
+    assert mass_ranked["keypoints"].tolist() == [[10.0, 10.0], [21.0, 22.0]]  # same points, refined alike
+    assert torch.allclose(mass_ranked["scores"], torch.tensor([0.84, 0.3]), atol=1e-5)
+
+
+def test_a_sharp_peak_is_one_point_not_a_plateau_of_equal_window_sums():
+    # Probabilities below float32's resolution around a confident peak give its eight neighbours the same
+    # window sum as the peak; only the peak may become a keypoint.
+    heat = torch.full((1, 1, 24, 24), 1e-12)
+    heat[0, 0, 12, 11] = 0.9
+    scores = max_pool_nms(keypoint_scores(heat, 3), 2)[0, 0]
+    assert (scores > 0.5).sum() == 1 and scores[12, 11] > 0.5
+

@@ -47,6 +47,9 @@ def _add_common_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", default="240x320", help="HxW to resize every image to, or native (default 240x320)")
     parser.add_argument("--max-keypoints", type=int, default=1000, help="keypoint budget per image (default 1000)")
     parser.add_argument("--nms", type=int, default=4, help="NMS radius in px for networks run in Python (default 4)")
+    parser.add_argument("--score-window", type=int, default=1, metavar="PX",
+                        help="odd window whose keypoint probability mass ranks a heatmap peak, for 65-way networks "
+                        "run in Python (default 1: the peak itself, as export)")
     parser.add_argument("--threshold", type=float, default=3.0,
                         help="correctness distance in px for repeatability, mAP and matching score (default 3)")
     parser.add_argument("--normalise", choices=("none", "minmax"), default="none",
@@ -102,8 +105,11 @@ def run(args: argparse.Namespace) -> int:
     if args.nms < 0 or not (math.isfinite(args.threshold) and args.threshold > 0):  # NaN compares False
         raise ToolkitError(f"--nms must be >= 0 and --threshold a positive number of pixels, got {args.nms} and "
                            f"{args.threshold}")
+    if args.score_window < 1 or args.score_window % 2 == 0:
+        raise ToolkitError(f"--score-window must be an odd number of pixels >= 1, got {args.score_window}")
     config = EvalConfig(size=parse_size(args.size), correct_threshold=args.threshold, normalise=args.normalise)
-    detector_config = DetectorConfig(max_keypoints=args.max_keypoints, nms_radius=args.nms)
+    detector_config = DetectorConfig(max_keypoints=args.max_keypoints, nms_radius=args.nms,
+                                     score_window=args.score_window)
     if args.output is not None:
         check_output_dir(args.output)
     pairs = _read_pairs(args)
@@ -125,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
         "data": str(args.data.resolve()),
         "toolkit_version": __version__,
         "protocol": {"size": list(config.size) if config.size else None, "max_keypoints": args.max_keypoints,
-                     "nms_radius": args.nms, "correct_threshold": config.correct_threshold,
+                     "nms_radius": args.nms, "score_window": args.score_window,
+                     "correct_threshold": config.correct_threshold,
                      "ransac_threshold": config.ransac_threshold, "normalise": config.normalise,
                      "homography_epsilons_px": [1, 3, 5],
                      "matcher": "mutual nearest neighbour (L2 for float, Hamming for binary descriptors)"},

@@ -36,18 +36,21 @@ def detect_with_network(model: nn.Module, gray: np.ndarray, config: DetectorConf
         logits, descriptors, projection = keypoint_heads(model, tensor)
         budget = min(config.max_keypoints, tensor.shape[2] * tensor.shape[3])
         output = extract_keypoints(logits, descriptors, budget, config.nms_radius, config.detection_threshold,
-                                   config.border, projection=projection)
+                                   config.border, projection=projection, score_window=config.score_window)
     count = int(output["num_valid"][0])
     keypoints = output["keypoints"][:count].numpy().astype(np.float32)
     scores = output["scores"][:count].numpy().astype(np.float32)
     descriptors = output["descriptors"][:count].numpy().astype(np.float32)
-    inside = (keypoints[:, 0] <= width - 1 - config.border) & (keypoints[:, 1] <= height - 1 - config.border)
+    # The border mask keeps integer peaks up to (size - 1 - border); refinement moves them by <= 0.5 px.
+    last_x, last_y = width - 1 - config.border + 0.5, height - 1 - config.border + 0.5
+    inside = (keypoints[:, 0] <= last_x) & (keypoints[:, 1] <= last_y)
     return Detection(keypoints[inside], scores[inside], descriptors[inside])
 
 
 def _network_detector(model: nn.Module, config: DetectorConfig, label: str, kind: str, settings: dict) -> Detector:
     model.eval()
     settings = {**settings, "max_keypoints": config.max_keypoints, "nms_radius": config.nms_radius,
+                "score_window": config.score_window,
                 "detection_threshold": config.detection_threshold, "border": config.border}
     return Detector(label, kind, lambda gray: detect_with_network(model, gray, config), settings)
 

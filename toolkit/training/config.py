@@ -69,6 +69,8 @@ class TrainConfig:
             raise ValueError("val_fraction must be within (0, 1)")
         if self.num_workers < -1:
             raise ValueError("num_workers must be >= 0 (or -1 for the default)")
+        if self.validation.score_window < 1 or self.validation.score_window % 2 == 0:
+            raise ValueError("validation.score_window must be an odd number of pixels")
 
     def learning_rate(self, step: int) -> float:
         """The learning rate of optimisation step ``step`` (0-based): a pure function, so resume needs no state."""

@@ -7,7 +7,7 @@ from typing import Callable
 import torch
 from torch import nn
 
-from models.keypoints import border_mask, heatmap_from_logits, max_pool_nms, sample_descriptors
+from models.keypoints import border_mask, heatmap_from_logits, keypoint_scores, max_pool_nms, sample_descriptors
 from toolkit.training.homographies import valid_mask
 
 
@@ -15,13 +15,16 @@ from toolkit.training.homographies import valid_mask
 class ValidationConfig:
     num_keypoints: int = 300  # per image, top-k after NMS
     nms_radius: int = 4
+    score_window: int = 1  # `keypoint_scores` window, as `toolkit eval --score-window` ranks points
     border: int = 4
     distance_px: float = 3.0  # a keypoint repeats / a match is correct within this distance
 
 
 def detect(logits: torch.Tensor, mask: torch.Tensor, config: ValidationConfig) -> torch.Tensor:
     """logits [1, 65, h, w], mask [H, W] -> top-k keypoints [K, 2] (x, y) where mask > 0."""
-    heatmap = max_pool_nms(heatmap_from_logits(logits.float()), config.nms_radius)[0, 0]
+    heatmap = heatmap_from_logits(logits.float())
+    mass = keypoint_scores(heatmap, config.score_window)
+    heatmap = max_pool_nms(mass, config.nms_radius)[0, 0]
     height, width = heatmap.shape
     heatmap = heatmap * border_mask(height, width, config.border, heatmap) * mask
     k = min(config.num_keypoints, int((heatmap > 0).sum()))
