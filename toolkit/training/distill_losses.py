@@ -21,6 +21,7 @@ from torch import nn
 from toolkit.training.distill_pairs import sample_map
 from toolkit.training.homographies import points_inside, warp_points
 from toolkit.training.losses import cell_centres, detector_loss
+from toolkit.training.pairs import CELL, DUSTBIN
 
 
 @dataclass
@@ -29,6 +30,9 @@ class DistillLossConfig:
     nce_weight: float = 0.25
     temperature: float = 0.1  # InfoNCE logits = cosine / temperature
     nce_cells: int = 256  # cells of view a per image in the InfoNCE (bounds the [N, N] matrix)
+    # Spread a keypoint's target over its pixel and the neighbours its sub-pixel offset leans to (bilinear
+    # weights), so the heatmap's 3x3 centroid (`models.keypoints.refine_keypoints`) learns the position.
+    subpixel_targets: bool = False
 
     def __post_init__(self) -> None:
         if self.temperature <= 0 or self.nce_cells < 2:
@@ -94,6 +98,49 @@ def info_nce_loss(
     return torch.stack(losses).mean()
 
 
+def subpixel_detector_loss(
+    logits: torch.Tensor, labels: torch.Tensor, offsets: torch.Tensor, valid: torch.Tensor | None = None
+) -> torch.Tensor:
+    """65-way cross-entropy against bilinear sub-pixel targets, averaged over valid cells.
+
+    A keypoint at offset (ox, oy) from the centre of its labelled pixel puts (1-|ox|)(1-|oy|) of the target
+    on that pixel, |ox|(1-|oy|) on the horizontal neighbour it leans to, and so on; weight that would land
+    outside the cell is dropped and the rest renormalised. Offsets of 0 give the hard-label cross-entropy.
+
+    Args:
+        logits: [B, 65, h, w]; labels: [B, h, w] int64 in 0..64; offsets: [B, 2, h, w] (x, y) in [-0.5, 0.5];
+        valid: [B, h, w] bool or None.
+    """
+    log_p = F.log_softmax(logits.float(), dim=1)
+    keypoint = labels < DUSTBIN
+    column, row = labels % CELL, labels // CELL
+    step_x, step_y = torch.sign(offsets[:, 0]).long(), torch.sign(offsets[:, 1]).long()
+    weight_x, weight_y = offsets[:, 0].abs(), offsets[:, 1].abs()
+    terms, weights = [], []
+    for use_x, use_y in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        x, y = column + use_x * step_x, row + use_y * step_y
+        weight = (weight_x if use_x else 1 - weight_x) * (weight_y if use_y else 1 - weight_y)
+        inside = keypoint & (x >= 0) & (x < CELL) & (y >= 0) & (y < CELL)
+        target = torch.where(inside, y * CELL + x, labels)  # dustbin cells keep class 64 (weight 1 below)
+        weight = torch.where(keypoint, weight * inside, torch.full_like(weight, float(use_x == 0 and use_y == 0)))
+        terms.append(log_p.gather(1, target.clamp(0, DUSTBIN)[:, None])[:, 0] * weight)
+        weights.append(weight)
+    per_cell = -torch.stack(terms).sum(0) / torch.stack(weights).sum(0).clamp_min(1e-6)
+    if valid is None:
+        return per_cell.mean()
+    mask = valid.float()
+    return (per_cell * mask).sum() / mask.sum().clamp_min(1.0)
+
+
+def keypoint_loss(outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], view: str,
+                  config: DistillLossConfig) -> torch.Tensor:
+    """One view's keypoint term: hard 65-way labels, or sub-pixel targets with ``config.subpixel_targets``."""
+    valid = batch["valid_b"] if view == "b" else None
+    if config.subpixel_targets:
+        return subpixel_detector_loss(outputs["logits"], batch[f"labels_{view}"], batch[f"offsets_{view}"], valid)
+    return detector_loss(outputs["logits"], batch[f"labels_{view}"], valid)
+
+
 def distill_loss(
     outputs_a: dict[str, torch.Tensor],
     outputs_b: dict[str, torch.Tensor],
@@ -103,9 +150,7 @@ def distill_loss(
     generator: torch.Generator | None = None,
 ) -> dict[str, torch.Tensor]:
     """The recipe's total loss and its parts (scalars; the parts detached)."""
-    detector = detector_loss(outputs_a["logits"], batch["labels_a"]) + detector_loss(
-        outputs_b["logits"], batch["labels_b"], batch["valid_b"]
-    )
+    detector = keypoint_loss(outputs_a, batch, "a", config) + keypoint_loss(outputs_b, batch, "b", config)
     distill = 0.5 * (
         distillation_loss(projection(outputs_a["descriptors"]), batch["teacher_a"], batch["teacher_valid_a"])
         + distillation_loss(projection(outputs_b["descriptors"]), batch["teacher_b"], batch["teacher_valid_b"])

@@ -27,7 +27,7 @@ from toolkit.errors import ToolkitError
 from toolkit.training.augment import AugmentConfig, photometric_augment
 from toolkit.training.homographies import HomographyConfig, points_inside, sample_homography, warp_points
 from toolkit.training.label_store import LabelStore
-from toolkit.training.pairs import CELL, EpochOrder, LabelledImage, cell_labels, cell_validity
+from toolkit.training.pairs import CELL, EpochOrder, LabelledImage, cell_labels_and_offsets, cell_validity
 
 
 @dataclass
@@ -188,12 +188,16 @@ class DistillPairs(Dataset):
             image_a = photometric_augment(image_a, self.augment, generator)
             image_b = photometric_augment(image_b, self.augment, generator) * mask_b
         valid_b = cell_validity(mask_b)
+        labels_a, offsets_a = cell_labels_and_offsets(in_a[inside_a], scores[inside_a], size)
+        labels_b, offsets_b = cell_labels_and_offsets(in_b[inside_b], scores[inside_b], size)
         return {
             "image_a": image_a,
             "image_b": image_b,
             "homography": a_to_b,
-            "labels_a": cell_labels(in_a[inside_a], scores[inside_a], size),
-            "labels_b": cell_labels(in_b[inside_b], scores[inside_b], size),
+            "labels_a": labels_a,
+            "labels_b": labels_b,
+            "offsets_a": offsets_a,
+            "offsets_b": offsets_b,
             "valid_b": valid_b,
             "teacher_a": teacher_a,
             "teacher_b": teacher_b,

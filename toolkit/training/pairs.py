@@ -106,16 +106,41 @@ def cell_labels(keypoints: torch.Tensor, scores: torch.Tensor, size: tuple[int, 
     Returns:
         [H/8, W/8] int64.
     """
+    return cell_labels_and_offsets(keypoints, scores, size)[0]
+
+
+def _to_cells(canvas: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """[..., H*W] -> [..., h, w, 64] with channel dy*8+dx, the pixel_shuffle order of the detector head."""
+    lead = canvas.shape[:-1]
+    cells = canvas.reshape(*lead, height // CELL, CELL, width // CELL, CELL).transpose(-3, -2)
+    return cells.reshape(*lead, height // CELL, width // CELL, CELL * CELL)
+
+
+def cell_labels_and_offsets(
+    keypoints: torch.Tensor, scores: torch.Tensor, size: tuple[int, int]
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """`cell_labels` plus where inside its labelled pixel each cell's keypoint lies.
+
+    Returns:
+        labels [H/8, W/8] int64 and offsets [2, H/8, W/8] (x, y) in [-0.5, 0.5]: the keypoint minus the centre
+        of its labelled pixel (0 in cells without a keypoint).
+    """
     height, width = size
     canvas = torch.zeros(height * width)
+    offsets = torch.zeros(2, height * width)
     if keypoints.shape[0]:
         x = keypoints[:, 0].round().long().clamp(0, width - 1)
         y = keypoints[:, 1].round().long().clamp(0, height - 1)
-        canvas.scatter_reduce_(0, y * width + x, scores.float().clamp_min(1e-6), reduce="amax")
-    # [H, W] -> [h, 8, w, 8] -> [h, w, 64] with channel dy*8+dx, the pixel_shuffle order of the detector head.
-    cells = canvas.reshape(height // CELL, CELL, width // CELL, CELL).permute(0, 2, 1, 3).reshape(height // CELL, width // CELL, CELL * CELL)
-    best, position = cells.max(dim=-1)
-    return torch.where(best > 0, position, torch.full_like(position, DUSTBIN))
+        index = y * width + x
+        strength = scores.float().clamp_min(1e-6)
+        canvas.scatter_reduce_(0, index, strength, reduce="amax")
+        winner = strength == canvas[index]  # the best keypoint of its pixel writes the offset
+        within = (keypoints - torch.stack([x, y], dim=1).float()).clamp(-0.5, 0.5)
+        offsets[:, index[winner]] = within[winner].T
+    best, position = _to_cells(canvas, height, width).max(dim=-1)
+    labels = torch.where(best > 0, position, torch.full_like(position, DUSTBIN))
+    cell_offsets = _to_cells(offsets, height, width).gather(-1, position[None].expand(2, -1, -1)[..., None])[..., 0]
+    return labels, cell_offsets * (best > 0)
 
 
 def cell_validity(mask: torch.Tensor) -> torch.Tensor:
