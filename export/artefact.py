@@ -22,6 +22,7 @@ from export.parity import MIN_PARITY_KEYPOINTS, default_parity_paths, images_in,
 from export.readme import artefact_readme
 from models.checkpoint import load_checkpoint
 from models.deform import set_deform_strategy
+from models.keypoints import is_score_window
 from models.featurenet import set_elu_form
 from profiles import TargetProfile, load_profile
 from toolkit import __version__
@@ -95,8 +96,7 @@ def _check_postprocess(options: ExportOptions, size: tuple[int, int]) -> None:
     if not 0 <= options.nms_radius < min(size) // 4:
         raise ToolkitError(f"--nms-radius must be between 0 and {min(size) // 4 - 1} px at {size[0]}x{size[1]}, "
                            f"got {options.nms_radius}")
-    window = options.score_window
-    if not (window >= 1 and window % 2 == 1 and window < min(size) // 4):
+    if not (is_score_window(options.score_window) and options.score_window < min(size) // 4):
         raise ToolkitError(f"--score-window must be an odd number of pixels between 1 and {min(size) // 4 - 1}, "
                            f"got {options.score_window}")
 

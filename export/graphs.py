@@ -26,7 +26,7 @@ class KeypointGraph(nn.Module):
         self.nms_radius = int(nms_radius)
         self.threshold = float(threshold)
         self.border = int(border)
-        self.score_window = score_window
+        self.score_window = int(score_window)
         # A stored constant: TensorRT 8.0 cannot parse the ScatterND a traced slice assignment becomes.
         self.register_buffer("border_weights", border_mask(height, width, border, torch.zeros(1)), persistent=False)
 

@@ -33,6 +33,11 @@ def max_pool_nms(heatmap: torch.Tensor, radius: int) -> torch.Tensor:
     return heatmap * (heatmap == pooled).to(heatmap.dtype)
 
 
+def is_score_window(window: int) -> bool:
+    """Whether ``window`` is a `keypoint_scores` window: an odd number of pixels, 1 or more."""
+    return window >= 1 and window % 2 == 1
+
+
 def keypoint_scores(heatmap: torch.Tensor, window: int, threshold: float = 0.0) -> torch.Tensor:
     """Score each local maximum of the heatmap by the probability mass of its ``window`` x ``window``
     neighbourhood; zero elsewhere and where the peak itself is at or below ``threshold``, so a detection

@@ -105,7 +105,9 @@ def run(args: argparse.Namespace) -> int:
     if args.nms < 0 or not (math.isfinite(args.threshold) and args.threshold > 0):  # NaN compares False
         raise ToolkitError(f"--nms must be >= 0 and --threshold a positive number of pixels, got {args.nms} and "
                            f"{args.threshold}")
-    if args.score_window < 1 or args.score_window % 2 == 0:
+    from models.keypoints import is_score_window
+
+    if not is_score_window(args.score_window):
         raise ToolkitError(f"--score-window must be an odd number of pixels >= 1, got {args.score_window}")
     config = EvalConfig(size=parse_size(args.size), correct_threshold=args.threshold, normalise=args.normalise)
     detector_config = DetectorConfig(max_keypoints=args.max_keypoints, nms_radius=args.nms,

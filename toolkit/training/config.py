@@ -7,6 +7,7 @@ from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
+from models.keypoints import is_score_window
 from toolkit.errors import ToolkitError
 from toolkit.training.augment import AugmentConfig
 from toolkit.training.distill_losses import DistillLossConfig
@@ -69,7 +70,7 @@ class TrainConfig:
             raise ValueError("val_fraction must be within (0, 1)")
         if self.num_workers < -1:
             raise ValueError("num_workers must be >= 0 (or -1 for the default)")
-        if self.validation.score_window < 1 or self.validation.score_window % 2 == 0:
+        if not is_score_window(self.validation.score_window):
             raise ValueError("validation.score_window must be an odd number of pixels")
 
     def learning_rate(self, step: int) -> float:

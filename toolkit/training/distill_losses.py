@@ -112,20 +112,18 @@ def subpixel_detector_loss(
         valid: [B, h, w] bool or None.
     """
     log_p = F.log_softmax(logits.float(), dim=1)
-    keypoint = labels < DUSTBIN
-    column, row = labels % CELL, labels // CELL
+    column, row = labels % CELL, labels // CELL  # dustbin cells (64) give row 8: never inside below
     step_x, step_y = torch.sign(offsets[:, 0]).long(), torch.sign(offsets[:, 1]).long()
     weight_x, weight_y = offsets[:, 0].abs(), offsets[:, 1].abs()
-    terms, weights = [], []
+    total, mass = torch.zeros_like(weight_x), torch.zeros_like(weight_x)
     for use_x, use_y in ((0, 0), (1, 0), (0, 1), (1, 1)):
         x, y = column + use_x * step_x, row + use_y * step_y
-        weight = (weight_x if use_x else 1 - weight_x) * (weight_y if use_y else 1 - weight_y)
-        inside = keypoint & (x >= 0) & (x < CELL) & (y >= 0) & (y < CELL)
-        target = torch.where(inside, y * CELL + x, labels)  # dustbin cells keep class 64 (weight 1 below)
-        weight = torch.where(keypoint, weight * inside, torch.full_like(weight, float(use_x == 0 and use_y == 0)))
-        terms.append(log_p.gather(1, target.clamp(0, DUSTBIN)[:, None])[:, 0] * weight)
-        weights.append(weight)
-    per_cell = -torch.stack(terms).sum(0) / torch.stack(weights).sum(0).clamp_min(1e-6)
+        inside = (x >= 0) & (x < CELL) & (y >= 0) & (y < CELL)
+        weight = (weight_x if use_x else 1 - weight_x) * (weight_y if use_y else 1 - weight_y) * inside
+        total = total + log_p.gather(1, torch.where(inside, y * CELL + x, 0)[:, None])[:, 0] * weight
+        mass = mass + weight
+    dustbin = log_p[:, DUSTBIN]
+    per_cell = -torch.where(labels < DUSTBIN, total / mass.clamp_min(1e-6), dustbin)
     if valid is None:
         return per_cell.mean()
     mask = valid.float()

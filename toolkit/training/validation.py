@@ -22,9 +22,8 @@ class ValidationConfig:
 
 def detect(logits: torch.Tensor, mask: torch.Tensor, config: ValidationConfig) -> torch.Tensor:
     """logits [1, 65, h, w], mask [H, W] -> top-k keypoints [K, 2] (x, y) where mask > 0."""
-    heatmap = heatmap_from_logits(logits.float())
-    mass = keypoint_scores(heatmap, config.score_window)
-    heatmap = max_pool_nms(mass, config.nms_radius)[0, 0]
+    scores = keypoint_scores(heatmap_from_logits(logits.float()), config.score_window)
+    heatmap = max_pool_nms(scores, config.nms_radius)[0, 0]
     height, width = heatmap.shape
     heatmap = heatmap * border_mask(height, width, config.border, heatmap) * mask
     k = min(config.num_keypoints, int((heatmap > 0).sum()))
