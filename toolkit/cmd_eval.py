@@ -16,7 +16,8 @@ from toolkit.evaluation.runner import EvalConfig, ImageCache, evaluate_model, gr
 
 MODEL_HELP = ("model to evaluate, repeatable: default / default-relu (the shipped weights), orb, sift, an artefact "
               "directory, a checkpoint (.safetensors/.pth), superpoint:PATH, teacher:alike-n (the teacher's own "
-              "keypoints and descriptors); prefix LABEL= to name the row (default: default orb sift)")
+              "keypoints and descriptors), xfeat (the light learned peer; bench extra); prefix LABEL= to name "
+              "the row (default: default orb sift)")
 
 HPATCHES_EPILOG = """\
 examples:

