@@ -24,6 +24,9 @@ from toolkit.training.losses import cell_centres, detector_loss
 from toolkit.training.pairs import CELL, DUSTBIN
 
 
+NEGATIVE_MIN_DISTANCE = 4.0  # px: anchor keypoints nearer each other than this are not negatives
+
+
 @dataclass
 class DistillLossConfig:
     distill_weight: float = 2.0
@@ -33,8 +36,13 @@ class DistillLossConfig:
     # Spread a keypoint's target over its pixel and the neighbours its sub-pixel offset leans to (bilinear
     # weights), so the heatmap's 3x3 centroid (`models.keypoints.refine_keypoints`) learns the position.
     subpixel_targets: bool = False
+    # Where the InfoNCE anchors of view a lie: "cells" (every cell centre) or "keypoints" (the teacher's
+    # keypoints of a, the student's map sampled there bilinearly as at inference, against each other).
+    nce_anchors: str = "cells"
 
     def __post_init__(self) -> None:
+        if self.nce_anchors not in ("cells", "keypoints"):
+            raise ValueError('nce_anchors must be "cells" or "keypoints"')
         if self.temperature <= 0 or self.nce_cells < 2:
             raise ValueError("temperature must be > 0 and nce_cells >= 2")
         if self.distill_weight < 0 or self.nce_weight < 0:
@@ -59,6 +67,19 @@ def distillation_loss(projected: torch.Tensor, teacher: torch.Tensor, valid: tor
     return ((1.0 - cosine) * weights).sum() / weights.sum().clamp_min(1.0)
 
 
+def keypoint_positions(labels: torch.Tensor, offsets: torch.Tensor | None = None) -> torch.Tensor:
+    """Pixel (x, y) of each labelled cell's keypoint, [N, 2], row-major over cells; dustbin cells skipped.
+
+    labels [h, w] int64 in 0..64; offsets [2, h, w] sub-pixel (x, y) offsets from the labelled pixel, or None.
+    """
+    rows, cols = (labels < DUSTBIN).nonzero(as_tuple=True)
+    inner = labels[rows, cols]
+    points = torch.stack([cols * CELL + inner % CELL, rows * CELL + inner // CELL], dim=1).float()
+    if offsets is not None:
+        points = points + offsets[:, rows, cols].T.float()
+    return points
+
+
 def info_nce_loss(
     descriptors_a: torch.Tensor,
     descriptors_b: torch.Tensor,
@@ -66,20 +87,23 @@ def info_nce_loss(
     valid_b: torch.Tensor,
     config: DistillLossConfig,
     generator: torch.Generator | None = None,
+    anchors: list[torch.Tensor] | None = None,
 ) -> torch.Tensor:
-    """Symmetric InfoNCE between cells of a and the same scene points in b.
+    """Symmetric InfoNCE between points of a and the same scene points in b.
 
     Args:
         descriptors_a, descriptors_b: [B, D, h, w] unit vectors; homography [B, 3, 3] a -> b pixels;
-        valid_b [B, h, w] bool (cells of b whose content comes from a).
+        valid_b [B, h, w] bool (cells of b whose content comes from a);
+        anchors: per image [N_i, 2] pixel points of a, sampled bilinearly; None: every cell centre.
     Returns:
-        scalar, the mean over images that have at least two usable cells.
+        scalar, the mean over images that have at least two usable points.
     """
     batch, _, height, width = descriptors_a.shape
     centres = cell_centres(height, width, descriptors_a.device)
     losses = []
     for i in range(batch):
-        warped = warp_points(centres, homography[i].float())
+        points = centres if anchors is None else anchors[i].to(descriptors_a.device)
+        warped = warp_points(points, homography[i].float())
         usable = points_inside(warped, (height * 8, width * 8), border=4)
         cell_b = (warped / 8.0).floor().long()
         usable &= valid_b[i][cell_b[:, 1].clamp(0, height - 1), cell_b[:, 0].clamp(0, width - 1)]
@@ -88,9 +112,16 @@ def info_nce_loss(
             continue
         if index.numel() > config.nce_cells:
             index = index[torch.randperm(index.numel(), generator=generator)[: config.nce_cells].to(index.device)]
-        anchors = descriptors_a[i].reshape(descriptors_a.shape[1], -1)[:, index].transpose(0, 1).float()
+        if anchors is None:
+            from_a = descriptors_a[i].reshape(descriptors_a.shape[1], -1)[:, index].transpose(0, 1).float()
+        else:
+            from_a = sample_map(descriptors_a[i], points[index])
         positives = sample_map(descriptors_b[i], warped[index])
-        logits = anchors @ positives.T / config.temperature
+        logits = from_a @ positives.T / config.temperature
+        if anchors is not None:  # keypoints closer than a match tolerance are the same point, not negatives
+            near = torch.cdist(points[index], points[index]) < NEGATIVE_MIN_DISTANCE
+            near.fill_diagonal_(False)
+            logits = logits.masked_fill(near, float("-inf"))
         target = torch.arange(index.numel(), device=logits.device)
         losses.append(0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target)))
     if not losses:
@@ -153,8 +184,12 @@ def distill_loss(
         distillation_loss(projection(outputs_a["descriptors"]), batch["teacher_a"], batch["teacher_valid_a"])
         + distillation_loss(projection(outputs_b["descriptors"]), batch["teacher_b"], batch["teacher_valid_b"])
     )
+    anchors = None
+    if config.nce_anchors == "keypoints":
+        anchors = [keypoint_positions(labels, offsets) for labels, offsets in zip(batch["labels_a"], batch["offsets_a"])]
     nce = info_nce_loss(
-        outputs_a["descriptors"], outputs_b["descriptors"], batch["homography"], batch["valid_b"], config, generator
+        outputs_a["descriptors"], outputs_b["descriptors"], batch["homography"], batch["valid_b"], config, generator,
+        anchors,
     )
     total = detector + config.distill_weight * distill + config.nce_weight * nce
     return {
