@@ -17,7 +17,7 @@ import torch
 from export.half import to_fp16
 from export.checks import check_against_profile, require_non_negative_gathers
 from export.graphs import DENSE_OUTPUTS, KEYPOINT_OUTPUTS, DenseGraph, KeypointGraph
-from export.onnx_export import export_onnx, op_histogram
+from export.onnx_export import check_before_writing, export_onnx, op_histogram
 from export.parity import MIN_PARITY_KEYPOINTS, default_parity_paths, images_in, measure_parity, prepare_parity_image
 from export.readme import artefact_readme
 from models.checkpoint import load_checkpoint
@@ -131,6 +131,9 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
     onnx_fp16 = precision == "fp16" and profile.runtime.startswith("onnxruntime")
     keypoint_model = to_fp16(keypoint_export.model) if onnx_fp16 else keypoint_export.model
     dense_model = to_fp16(dense_export.model) if onnx_fp16 else dense_export.model
+    final_model = dense_model if options.dense else keypoint_model
+    graph_label = f"the {'fp16' if onnx_fp16 else 'fp32'} {'dense' if options.dense else 'keypoint'} graph"
+    checker = check_before_writing(final_model, graph_label)  # before the parity run: it takes milliseconds
 
     parity = measure_parity(keypoint_module, keypoint_model, dense_module, dense_model, images, [p.name for p in paths])
     lowest_gather = require_non_negative_gathers(keypoint_model, images, profile)
@@ -143,7 +146,6 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
         raise ToolkitError(
             f"parity failed: only {parity.keypoints_identical:.1%} of keypoints identical to PyTorch (need {required:.0%})"
         )
-    final_model = dense_model if options.dense else keypoint_model
 
     with atomic_directory(output) as staging:
         onnx.save(final_model, str(staging / MODEL_NAME))
@@ -162,7 +164,7 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
             "onnx": {"file": MODEL_NAME, "sha256": sha256_file(staging / MODEL_NAME), "opset": profile.max_opset,
                      "nodes_before_simplify": deployed.nodes_before_simplify,
                      "nodes_after_simplify": deployed.nodes_after_simplify, "simplifier": deployed.simplifier,
-                     "op_types": op_histogram(final_model)},
+                     "op_types": op_histogram(final_model), "checker": checker},
             "input": {"name": "image", "shape": [1, 1, height, width], "dtype": "float32", "layout": "NCHW",
                       "color": "gray", "normalisation": {"scale": 1.0 / 255.0, "offset": 0.0},
                       "resize": "cv2.INTER_AREA to the input shape", "resize_policy": "resize"},

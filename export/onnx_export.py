@@ -1,4 +1,4 @@
-"""Tracing a graph module to ONNX, checking it, and simplifying it.
+"""Tracing a graph module to ONNX, checking it, and simplifying it; the checker every artefact writer runs.
 
 The TorchScript exporter (``dynamo=False``) is used for every target: the dynamo exporter of torch 2.13
 emits opset >= 18 whatever is asked, and the TX2 (TensorRT 8.0) reads opset <= 13.
@@ -14,6 +14,7 @@ import onnx
 import torch
 from torch import nn
 
+from export.graph_order import topologically_sorted
 from toolkit.errors import ToolkitError
 from vo_runtime.errors import first_line
 
@@ -47,21 +48,32 @@ def trace_to_onnx(
 
 
 def simplify(model: onnx.ModelProto) -> tuple[onnx.ModelProto, str]:
-    """Constant-fold and clean the graph with onnxsim; the result is re-checked by onnxsim itself."""
+    """Constant-fold and clean the graph with onnxsim; the result is re-checked by onnxsim itself and sorted
+    (folding rewrites nodes, and the order is what strict consumers read)."""
     import onnxsim
 
     simplified, ok = onnxsim.simplify(model)
     if not ok:
         raise ToolkitError("onnxsim could not validate the simplified graph against the original")
-    return simplified, f"onnxsim {onnxsim.__version__}"
+    return topologically_sorted(simplified), f"onnxsim {onnxsim.__version__}"
 
 
-def full_check(model: onnx.ModelProto) -> None:
-    """onnx.checker with shape inference (``full_check``); a failure is an export bug, reported in one line."""
+def full_check(model: onnx.ModelProto, what: str = "exported graph") -> None:
+    """onnx.checker with shape inference (``full_check``); a failure is a toolkit bug, reported in one line."""
     try:
         onnx.checker.check_model(model, full_check=True)
     except (onnx.checker.ValidationError, onnx.shape_inference.InferenceError) as exc:
-        raise ToolkitError(f"exported graph fails onnx.checker: {first_line(exc)}") from None
+        raise ToolkitError(f"{what} fails onnx.checker: {first_line(exc)}") from None
+
+
+def check_before_writing(model: onnx.ModelProto, what: str) -> dict:
+    """`full_check` of the graph a writer is about to save; returns the manifest's record of it (``onnx.checker``).
+
+    The record is how the runtime knows: the check takes ~2 ms, but it needs the onnx package, which the
+    runtime does not depend on, and onnxruntime sorts nodes for itself, so it cannot tell either.
+    """
+    full_check(model, what)
+    return {"check": "onnx.checker.check_model(full_check=True)", "passed": True, "onnx_version": onnx.__version__}
 
 
 def export_onnx(

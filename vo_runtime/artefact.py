@@ -11,6 +11,9 @@ An artefact is a directory written by `toolkit export`:
   Dense mode (``--dense``) outputs ``heatmap`` [1, 1, H, W] and ``descriptors_coarse`` [1, D, H/8, W/8].
 - ``manifest.json``: target, opset, input shape and normalisation, outputs, precision, deform strategy,
   ``onnx.sha256`` of model.onnx, source checkpoint hash, toolkit version and parity figures.
+  ``onnx.checker`` records that model.onnx passed ``onnx.checker.check_model(full_check=True)`` (which
+  includes topological node order) before it was written; artefacts older than that record lack the field.
+  The runtime does not re-run the check: it needs the onnx package, which is no runtime dependency.
 """
 from __future__ import annotations
 

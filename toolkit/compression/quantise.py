@@ -25,7 +25,8 @@ import onnx
 from export.artefact import ARTEFACT_FILES, MIN_IDENTICAL, artefact_manifest
 from export.half import to_fp16
 from export.checks import check_against_profile, require_non_negative_gathers
-from export.onnx_export import op_histogram
+from export.graph_order import topologically_sorted
+from export.onnx_export import check_before_writing, op_histogram
 from export.parity import default_parity_paths, prepare_image
 from profiles import load_profile
 from toolkit import __version__
@@ -91,7 +92,8 @@ def _preprocess(model_path: Path, work: Path) -> Path:
 
 def quantise_int8(model: onnx.ModelProto, calibration: np.ndarray, exclude: list[str]) -> onnx.ModelProto:
     """Static QDQ INT8 (per-channel S8 weights, U8 activations, percentile calibration) of the
-    `QUANTISED_OPS` nodes not in ``exclude``."""
+    `QUANTISED_OPS` nodes not in ``exclude``; sorted, as the inserted Q/DQ nodes are not placed in order
+    by contract."""
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
 
     with tempfile.TemporaryDirectory(prefix="edgefeat-quant-") as work:
@@ -106,7 +108,7 @@ def quantise_int8(model: onnx.ModelProto, calibration: np.ndarray, exclude: list
             weight_type=QuantType.QInt8, op_types_to_quantize=list(QUANTISED_OPS), nodes_to_exclude=list(exclude),
             calibrate_method=CalibrationMethod.Percentile, extra_options={"CalibPercentile": CALIBRATION_PERCENTILE},
         )
-        return onnx.load(str(target))
+        return topologically_sorted(onnx.load(str(target)))
 
 
 def quantise_fp16(model: onnx.ModelProto) -> onnx.ModelProto:
@@ -189,6 +191,7 @@ def quantise_artefact(options: QuantiseOptions, log=print) -> Path:
         precision_applied = "onnx-fp16-weights"
         details["scheme"] = "float16 weights and arithmetic, float32 inputs/outputs (keep_io_types)"
     check_against_profile(quantised, profile)  # names the first op the target cannot run
+    checker = check_before_writing(quantised, f"the {options.mode} graph")  # before the parity run: it takes milliseconds
 
     images, names = _parity_images(height, width)
     reference, candidate = ort_session(model), ort_session(quantised)
@@ -218,7 +221,7 @@ def quantise_artefact(options: QuantiseOptions, log=print) -> Path:
     with atomic_directory(output) as staging:
         onnx.save(quantised, str(staging / MODEL_NAME))
         new_manifest["onnx"] = {**manifest["onnx"], "file": MODEL_NAME, "sha256": sha256_file(staging / MODEL_NAME),
-                                "op_types": op_histogram(quantised)}
+                                "op_types": op_histogram(quantised), "checker": checker}
         (staging / MANIFEST_NAME).write_text(json.dumps(new_manifest, indent=2) + "\n")
         (staging / "README.md").write_text(_readme(new_manifest))
     return output
