@@ -32,17 +32,18 @@ sys.path.insert(0, str(ROOT))
 
 from vo_runtime import FeatureExtractor, OrbExtractor, VisualOdometry, VOConfig  # noqa: E402
 from vo_runtime.artefact import default_artefact  # noqa: E402
-from vo_runtime.cli import darken  # noqa: E402
 from vo_runtime.datasets import open_sequence  # noqa: E402
 from vo_runtime.errors import VORuntimeError  # noqa: E402
-from vo_runtime.evaluate import evaluate, load_groundtruth, plot_trajectory  # noqa: E402
+from vo_runtime.evaluate import evaluate, plot_trajectory, sequence_groundtruth  # noqa: E402
 from vo_runtime.features import to_gray_u8  # noqa: E402
+from vo_runtime.lowlight import PRESETS  # noqa: E402
 from vo_runtime.mapping import MappingConfig  # noqa: E402
 from vo_runtime.odometry import INITIALISING, SKIPPED, TRACKED_STATES  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
 
 SEQUENCES = ("kitti_odom06_f000000-000050", "kitti_odom07_f000000-000159", "tum_fr2_desk_snippet")
-LOWLIGHT = (2.0, 3.0, 0.3)
+# normal light; "low": the global --lowlight dark preset (2,3,0.3); "onboard": a light riding on the camera
+LIGHTS = {"normal": None, "low": PRESETS["dark"], "onboard": PRESETS["onboard"]}
 
 
 def parse_overrides(items: list[str]) -> dict:
@@ -69,8 +70,8 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, overr
     for index, image in enumerate(read_frames(frames)):
         if size is not None:
             image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-        if light == "low":
-            image = darken(to_gray_u8(image), *LOWLIGHT, seed=start + index)  # the same noise at any start
+        if LIGHTS[light] is not None:
+            image = LIGHTS[light](to_gray_u8(image), seed=start + index)  # the same noise at any start
         vo.track(image, stamps[index])
     vo.finish()  # a keyframe's mapping still on the worker thread (--set mapping_thread=true)
     results = vo.results
@@ -87,10 +88,8 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, overr
            "extract_ms": float(np.median([r.extract_ms for r in results])),
            "track_ms": float(np.median([r.track_ms for r in results])), "ate": None, "rpe": None}
     row["tracked_pct"] = 100.0 * row["tracked"] / max(row["after_init"], 1)
-    layout = "tum" if sequence.layout == "tum" else "kitti"
     try:
-        report = evaluate(results, load_groundtruth(sequence.groundtruth, layout, sequence.timestamps), layout,
-                          stamps)
+        report = evaluate(results, sequence_groundtruth(sequence), sequence.layout, stamps)
         row["ate"], row["rpe"] = report["ate_rmse_m"], report["rpe_rmse_m"]
         if plot_dir is not None:
             name = f"{sequence_dir.name}{f'_from{start}' if start else ''}_{row['features']}_{light}.png"

@@ -5,6 +5,8 @@
 - TUM RGB-D: ``rgb/<timestamp>.png``, optional ``groundtruth.txt`` (``t tx ty tz qx qy qz qw``); TUM ships
   no calibration file, so ``calib`` names a file or the preset ``tum-fr2`` (chosen automatically when the
   folder name says fr2 / freiburg2).
+- EuRoC MAV (ASL): ``mav0/camN/data.csv``, ``sensor.yaml`` (pinhole + radial-tangential, T_BS) and
+  ``mav0/state_groundtruth_estimate0/data.csv`` (`euroc.py`); ``camera`` picks camN.
 - Anything else: a folder of images plus a calibration file.
 """
 from __future__ import annotations
@@ -12,8 +14,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from vo_runtime.camera import Camera, load_camera
 from vo_runtime.errors import CalibrationError, VORuntimeError
+from vo_runtime.euroc import euroc_root, open_euroc
 from vo_runtime.sequence import frame_timestamps, list_frames
 
 # TUM RGB-D "freiburg2" RGB intrinsics (OpenCV distortion order), from the dataset's calibration page.
@@ -27,11 +32,12 @@ CAMERA_PRESETS = {
 class Sequence:
     """Frames in order, their timestamps, the camera, and the ground-truth file if there is one."""
 
-    layout: str                 # "kitti", "tum" or "folder"
+    layout: str                 # "kitti", "tum", "euroc" or "folder"
     frames: list[Path]
-    timestamps: list[float]
+    timestamps: list[float]     # seconds (KITTI times.txt, TUM and EuRoC stamps), or frame indices
     camera: Camera
-    groundtruth: Path | None    # KITTI poses.txt or TUM groundtruth.txt
+    groundtruth: Path | None    # KITTI poses.txt, TUM groundtruth.txt or EuRoC state_groundtruth_estimate0/data.csv
+    body_from_camera: np.ndarray | None = None  # EuRoC T_BS: ground truth is of the body, the VO's of the camera
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -51,6 +57,12 @@ def open_sequence(path: str | Path, calib: str | Path | None = None, camera: int
     root = Path(path)
     if not root.is_dir():
         raise VORuntimeError(f"sequence folder not found: {root}")
+    mav0 = euroc_root(root)
+    if mav0 is not None:
+        euroc = open_euroc(mav0, camera)
+        return Sequence("euroc", euroc.frames, euroc.timestamps,
+                        euroc.camera.camera if calib is None else resolve_camera(calib, camera),
+                        euroc.groundtruth, euroc.camera.body_from_camera)
     if root.name.startswith("image_") and (root.parent / "calib.txt").is_file():
         root = root.parent
     if root.name == "rgb" and (root.parent / "groundtruth.txt").is_file():

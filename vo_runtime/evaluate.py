@@ -55,6 +55,26 @@ def load_groundtruth(path: str | Path, layout: str, timestamps: Seq[float]) -> A
     return PoseTrajectory3D(poses_se3=list(poses), timestamps=np.asarray(timestamps, float))
 
 
+def sequence_groundtruth(sequence: Any, path: str | Path | None = None) -> Any:
+    """The ground truth of a `datasets.Sequence` (its own file, or ``path``) as an evo trajectory of camera
+    poses: EuRoC body poses become camera poses (``T_WB @ T_BS``) at the frames' timestamps (nearest within
+    5 ms); KITTI and TUM files as `load_groundtruth` reads them."""
+    path = Path(path) if path is not None else sequence.groundtruth
+    if path is None:
+        raise VORuntimeError("the sequence has no ground truth (poses.txt, groundtruth.txt or "
+                             "state_groundtruth_estimate0/data.csv)")
+    if sequence.layout != "euroc":
+        return load_groundtruth(path, "tum" if sequence.layout == "tum" else "kitti", sequence.timestamps)
+    from evo.core.trajectory import PoseTrajectory3D
+
+    from vo_runtime.euroc import camera_groundtruth
+
+    if not path.is_file():
+        raise VORuntimeError(f"ground truth not found: {path}")
+    stamps, poses = camera_groundtruth(path, sequence.body_from_camera, sequence.timestamps)
+    return PoseTrajectory3D(poses_se3=list(poses), timestamps=stamps)
+
+
 def _kitti_rows(path: Path) -> np.ndarray:
     """The [N, 12] finite numbers of a KITTI poses file; `VORuntimeError` naming what is wrong."""
     try:
