@@ -121,7 +121,7 @@ def test_cli_argument_errors(shared_data, tmp_path, capsys, monkeypatch):
     assert main(["--images", tum]) == 2  # no --artefact and an install without the shipped one
     assert "shipped default artefact is missing" in capsys.readouterr().err
     monkeypatch.undo()
-    assert main(["--features", "orb", "--images", tum, "--lowlight", "dark"]) == 2
+    assert main(["--features", "orb", "--images", tum, "--lowlight", "dusk"]) == 2  # not a preset, not numbers
     assert "GAMMA,SIGMA" in capsys.readouterr().err
     assert main(["--artefact", str(tmp_path), "--images", tum]) == 2
     assert "manifest.json is missing" in capsys.readouterr().err

@@ -15,11 +15,12 @@ import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from vo_runtime.artefact import default_artefact
+from vo_runtime.artefact import ASPECT_TOLERANCE, default_artefact
 from vo_runtime.clitools import OneLineArgumentParser, run_guarded
 from vo_runtime.datasets import CAMERA_PRESETS, Sequence, open_sequence
 from vo_runtime.errors import VORuntimeError
 from vo_runtime.features import FeatureExtractor, OrbExtractor, to_gray_u8
+from vo_runtime.lowlight import Darkening, parse_lowlight
 from vo_runtime.odometry import SKIPPED, VisualOdometry, VOConfig, VOResult
 from vo_runtime.outputs import OutputKind, atomic_directory, check_replaceable
 from vo_runtime.pipeline import StreamFrame
@@ -34,7 +35,7 @@ VO_RUN = OutputKind("a VO run written by the vo command",
 MAX_ORB_KEYPOINTS = 100_000
 MAX_EXTRACT_AHEAD = 16  # frames held decoded in memory ahead of the tracking
 
-DESCRIPTION = ("Run the monocular VO on a sequence (KITTI odometry or TUM RGB-D layout, or a folder of "
+DESCRIPTION = ("Run the monocular VO on a sequence (KITTI odometry, TUM RGB-D or EuRoC MAV layout, or a folder of "
                "images) with an exported artefact or OpenCV ORB features; write the trajectory and, given "
                "ground truth, ATE/RPE after Sim(3) alignment and a plot.")
 
@@ -45,14 +46,18 @@ examples:
   {prog} --features orb --images ../shared/data/kitti_odom06_f000000-000050 --lowlight 2,3,0.3 --gt auto
 
 --images takes a KITTI sequence folder (image_0/, calib.txt, times.txt, poses.txt), a TUM folder
-(rgb/, groundtruth.txt; camera preset tum-fr2 when the name says fr2) or any folder of images plus --calib.
---gt auto uses the sequence's own poses.txt / groundtruth.txt. -o DIR writes trajectory_tum.txt,
+(rgb/, groundtruth.txt; camera preset tum-fr2 when the name says fr2), a EuRoC MAV folder (mav0/ or the
+folder holding it: camN/data.csv, camN/sensor.yaml, --camera N) or any folder of images plus --calib.
+--gt auto uses the sequence's own poses.txt / groundtruth.txt (EuRoC: the body's ground truth composed with
+the camera's T_BS, frames matched by timestamp within 5 ms). -o DIR writes trajectory_tum.txt,
 trajectory_kitti.txt, frames.json (state and counts per frame), summary.json and, with ground truth,
 trajectory.png; an existing DIR is replaced only with --force and only if it is an earlier vo run.
 A frame that cannot be read, or whose size differs from the calibration's (or the first frame's), is
-skipped: its pose is held, frames.json says why, and the summary counts it. --lowlight GAMMA,SIGMA[,GAIN] darkens every frame (I' = 255 GAIN (I/255)^GAMMA, GAIN default 1) and
-adds Gaussian noise of SIGMA grey levels (seeded per frame), to test the same sequence in low light. Exit codes: 0 done,
-2 bad input.
+skipped: its pose is held, frames.json says why, and the summary counts it. --lowlight tests the same
+sequence in the dark (seeded per frame): GAMMA,SIGMA[,GAIN] darkens every frame (I' = 255 GAIN (I/255)^GAMMA,
+GAIN default 1) and adds Gaussian noise of SIGMA grey levels; the preset dark is 2,3,0.3; the preset onboard
+is a light riding on the camera (a bright spot fixed in the image, dim ambient, vignetting, Poisson-Gaussian
+noise after darkening, motion blur; vo_runtime/lowlight.py). Exit codes: 0 done, 2 bad input.
 """
 
 
@@ -61,11 +66,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keypoints from the artefact (default) or from OpenCV ORB, for comparison")
     parser.add_argument("--artefact", type=Path,
                         help="artefact directory written by `toolkit export` (default: the shipped featurenet-relu x86-cpu "
-                        "artefact, 240x320)")
+                        "artefact for the camera's aspect: 240x320 for 4:3 and any other, 360x560 for 752x480-like "
+                        "cameras such as EuRoC's)")
     parser.add_argument("--images", required=True, type=Path, help="sequence folder or folder of images")
     parser.add_argument("--calib", help=f"KITTI calib.txt, JSON intrinsics, or a preset ({', '.join(CAMERA_PRESETS)})")
-    parser.add_argument("--camera", type=int, default=0, help="KITTI camera index: image_N/ and PN (default 0)")
-    parser.add_argument("--gt", help="ground truth (KITTI poses.txt or TUM groundtruth.txt), or auto")
+    parser.add_argument("--camera", type=int, default=0, help="camera index: KITTI image_N/ and PN, EuRoC camN/ (default 0)")
+    parser.add_argument("--gt", help="ground truth (KITTI poses.txt, TUM groundtruth.txt, EuRoC data.csv), or auto")
     parser.add_argument("-o", "--output", type=Path, help="output directory (written as a whole)")
     parser.add_argument("--force", action="store_true", help="replace an earlier vo run in the output directory")
     parser.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads (default 1)")
@@ -83,31 +89,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "cpu) or a list such as cuda,cpu; a missing one is an error")
     parser.add_argument("--max-keypoints", type=int, default=2000, help="ORB features per frame (default 2000)")
     parser.add_argument("--max-frames", type=int, help="stop after this many frames")
-    parser.add_argument("--lowlight", help="GAMMA,SIGMA[,GAIN]: darken and add noise to every frame")
+    parser.add_argument("--lowlight", help="dark, onboard, or GAMMA,SIGMA[,GAIN]: darken every frame (see below)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
-
-
-def darken(image: np.ndarray, gamma: float, sigma: float, gain: float, seed: int) -> np.ndarray:
-    """Gamma darkening and gain, plus Gaussian sensor noise; uint8 in and out (same shape)."""
-    scaled = 255.0 * gain * (image.astype(np.float32) / 255.0) ** gamma
-    noisy = scaled + np.random.default_rng(seed).normal(0.0, sigma, size=image.shape)
-    return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
-
-
-def _parse_lowlight(text: str | None) -> tuple[float, float, float] | None:
-    if text is None:
-        return None
-    try:
-        values = [float(v) for v in text.split(",")]
-        if len(values) not in (2, 3) or not all(math.isfinite(v) for v in values):
-            raise ValueError
-    except ValueError:
-        raise VORuntimeError(f"--lowlight takes GAMMA,SIGMA[,GAIN] as finite numbers (e.g. 2,3,0.3), got {text!r}") from None
-    gamma, sigma, gain = values if len(values) == 3 else (*values, 1.0)
-    if gamma <= 0 or sigma < 0 or not 0 < gain <= 1:
-        raise VORuntimeError("--lowlight needs GAMMA > 0, SIGMA >= 0 and 0 < GAIN <= 1")
-    return gamma, sigma, gain
 
 
 def _check_options(args: argparse.Namespace) -> None:
@@ -146,19 +130,20 @@ def _load_groundtruth(args: argparse.Namespace, sequence: Sequence) -> Any:
         return None
     path = sequence.groundtruth if args.gt == "auto" else Path(args.gt)
     if path is None:
-        raise VORuntimeError(f"--gt auto: {args.images} has no poses.txt or groundtruth.txt")
-    from vo_runtime.evaluate import load_groundtruth, require_evaluation_packages
+        raise VORuntimeError(f"--gt auto: {args.images} has no poses.txt, groundtruth.txt or "
+                             "mav0/state_groundtruth_estimate0/data.csv")
+    from vo_runtime.evaluate import require_evaluation_packages, sequence_groundtruth
 
     require_evaluation_packages()
-    return load_groundtruth(path, "tum" if sequence.layout == "tum" else "kitti", sequence.timestamps)
+    return sequence_groundtruth(sequence, path)
 
 
-def _frame_loader(path: Path, lowlight: tuple | None, index: int) -> Callable[[], np.ndarray]:
+def _frame_loader(path: Path, lowlight: Darkening | None, index: int) -> Callable[[], np.ndarray]:
     """Read (and darken) one frame file; run on the extraction thread. A bad file raises `FrameError`, so the
     frame is skipped and flagged, never fatal (a frame of another size too: `MonoVO.stream`)."""
     def load() -> np.ndarray:
         image = read_frame(path)
-        return image if lowlight is None else darken(to_gray_u8(image), *lowlight, seed=index)
+        return image if lowlight is None else lowlight(to_gray_u8(image), seed=index)
 
     return load
 
@@ -168,17 +153,18 @@ def run(args: argparse.Namespace) -> int:
     from vo_runtime.providers import parse_providers
 
     providers = parse_providers(args.providers)
-    lowlight = _parse_lowlight(args.lowlight)
+    lowlight = parse_lowlight(args.lowlight)
     if args.output is not None:
         check_replaceable(args.output, VO_RUN, args.force)
-    if args.features == "artefact" and args.artefact is None:
-        args.artefact = default_artefact()
     sequence = open_sequence(args.images, args.calib, args.camera)
     groundtruth = _load_groundtruth(args, sequence)
     frames = sequence.frames[: args.max_frames]
+    height, width = _frame_size(sequence.camera, frames)
+    if args.features == "artefact" and args.artefact is None:
+        args.artefact = default_artefact(width, height)  # the shipped artefact for this camera's aspect
     extractor = (OrbExtractor(args.max_keypoints) if args.features == "orb"
                  else FeatureExtractor(args.artefact, threads=args.threads, providers=providers))
-    _warn_on_squeezed_frames(extractor, sequence.camera, frames)
+    _warn_on_squeezed_frames(extractor, height, width)
     vo = VisualOdometry(extractor, sequence.camera, VOConfig(mapping_thread=args.mapping_thread))
     with threadpool_limits(limits=args.blas_threads, user_api="blas"):
         stream = (StreamFrame(_frame_loader(path, lowlight, index), sequence.timestamps[index], path.name)
@@ -207,8 +193,7 @@ def run(args: argparse.Namespace) -> int:
         from vo_runtime.evaluate import evaluate
 
         try:
-            report = evaluate(vo.results, groundtruth, "tum" if sequence.layout == "tum" else "kitti",
-                              sequence.timestamps)
+            report = evaluate(vo.results, groundtruth, sequence.layout, sequence.timestamps)
             summary.update({k: v for k, v in report.items() if not k.startswith("_")})
         except VORuntimeError as exc:  # e.g. never initialised: keep the trajectory, say why there is no ATE
             summary["ate_rmse_m"] = None
@@ -222,18 +207,21 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-ASPECT_WARNING = 0.1  # a frame stretched more than 10 % on one axis by the resize to the artefact's input
 
 
-def _warn_on_squeezed_frames(extractor: Any, camera: Any, frames: list[Path]) -> None:
+def _frame_size(camera: Any, frames: list[Path]) -> tuple[int | None, int | None]:
+    """(height, width) of the frames: the calibration's, or for one without a size (KITTI's) the first frame's."""
+    if camera.height and camera.width:
+        return camera.height, camera.width
+    first = cv2.imread(str(frames[0]), cv2.IMREAD_UNCHANGED) if frames else None
+    return (None, None) if first is None else first.shape[:2]
+
+
+def _warn_on_squeezed_frames(extractor: Any, height: int | None, width: int | None) -> None:
     """One warning line when the artefact's input aspect differs from the camera's, naming the export for it."""
     if not hasattr(extractor, "aspect_distortion"):
         return
-    height, width = camera.height, camera.width
-    if not (height and width) and frames:  # calibration without a size (KITTI's): the first frame's
-        first = cv2.imread(str(frames[0]), cv2.IMREAD_UNCHANGED)
-        height, width = (None, None) if first is None else first.shape[:2]
-    if not (height and width) or extractor.aspect_distortion(height, width) <= ASPECT_WARNING:
+    if not (height and width) or extractor.aspect_distortion(height, width) <= ASPECT_TOLERANCE:
         return
     pixels = extractor.height * extractor.width
     suggestion = f"{8 * round(math.sqrt(pixels * height / width) / 8)}x{8 * round(math.sqrt(pixels * width / height) / 8)}"
