@@ -59,7 +59,8 @@ def test_a_non_editable_install_exports_the_shipped_model_without_shared_data(tm
     for shipped in ("models/weights/featurenet-elu.safetensors", "models/weights/featurenet-relu.safetensors",
                     "models/weights/MODEL_CARD-featurenet-elu.md", "export/parity_images/PROVENANCE.md",
                     "export/parity_images/hopper.png", "vo_runtime/default_artefact/model.onnx",
-                    "vo_runtime/default_artefact/manifest.json"):
+                    "vo_runtime/default_artefact/manifest.json", "vo_runtime/default_artefact_wide/model.onnx",
+                    "vo_runtime/default_artefact_wide/manifest.json"):
         assert shipped in names, shipped
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)

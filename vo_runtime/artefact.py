@@ -91,12 +91,35 @@ def verify_artefact(artefact_dir: str | Path) -> dict[str, Any]:
 
 
 DEFAULT_ARTEFACT_DIR = Path(__file__).resolve().parent / "default_artefact"
+# The shipped artefacts, one per camera aspect: the 4:3 one is the default of every camera the others do not
+# fit; a camera of another aspect takes the one exported at its own aspect (no squeezed view, docs/vo.md).
+WIDE_ARTEFACT_DIR = Path(__file__).resolve().parent / "default_artefact_wide"
+ASPECT_TOLERANCE = 0.1  # a frame stretched by at most 10 % on one axis counts as the artefact's aspect
 
 
-def default_artefact() -> Path:
-    """The artefact shipped with the package: the featurenet-relu weights exported by `toolkit export
-    --target x86-cpu --checkpoint default-relu` at 240x320 (its manifest says so). Raises ArtefactError
-    when an install lacks it."""
-    if not (DEFAULT_ARTEFACT_DIR / "manifest.json").is_file():
-        raise ArtefactError(f"the shipped default artefact is missing from {DEFAULT_ARTEFACT_DIR}: pass --artefact DIR")
-    return DEFAULT_ARTEFACT_DIR
+def default_artefact(width: int | None = None, height: int | None = None) -> Path:
+    """The artefact shipped with the package for frames of ``width`` x ``height``: the one whose input has
+    the frames' aspect (within `ASPECT_TOLERANCE`), else the 4:3 featurenet-relu x86-cpu artefact at 240x320
+    (also without a size). Raises ArtefactError when an install lacks it."""
+    chosen = DEFAULT_ARTEFACT_DIR
+    if width and height:
+        fitting = [(aspect_distortion(_input_size(directory), height, width), directory)
+                   for directory in (DEFAULT_ARTEFACT_DIR, WIDE_ARTEFACT_DIR) if (directory / MANIFEST_NAME).is_file()]
+        fitting = [item for item in fitting if item[0] <= ASPECT_TOLERANCE]
+        if fitting:
+            chosen = min(fitting)[1]
+    if not (chosen / MANIFEST_NAME).is_file():
+        raise ArtefactError(f"the shipped default artefact is missing from {chosen}: pass --artefact DIR")
+    return chosen
+
+
+def _input_size(artefact_dir: Path) -> tuple[int, int]:
+    shape = load_manifest(artefact_dir)["input"]["shape"]
+    return int(shape[2]), int(shape[3])
+
+
+def aspect_distortion(input_size: tuple[int, int], height: int, width: int) -> float:
+    """How much resizing ``height`` x ``width`` frames to an ``input_size`` (height, width) network input
+    stretches one axis against the other (0: the same aspect; 1.48 for KITTI's 1226x370 into 320x240)."""
+    ratio = (width / height) / (input_size[1] / input_size[0])
+    return max(ratio, 1.0 / ratio) - 1.0

@@ -27,6 +27,11 @@ class VOConfig:
     init_min_parallax_px: float = 15.0   # median track motion before a two-view initialisation is tried
     init_min_median_deg: float = 2.0     # median ray angle of those landmarks (unless the tracks are dying)
     init_min_landmarks: int = 40         # triangulated points an initialisation must produce
+    # Share of the tracks from the reference that the two-view model (essential matrix or homography) must
+    # explain. A rigid scene seen through good tracks fits 50-90 %; the drone's take-off (a fast rotation
+    # onset with a few mm of baseline, EuRoC MH_05) fitted 24-45 %: a model fitted to noise, whose map then
+    # "tracked" with metres of error. 0 turns the check off.
+    init_min_inlier_share: float = 0.0
     min_triangulation_deg: float = 1.0   # rays closer than this give no landmark
     search_radius_px: float = 15.0       # guided matching around a landmark's predicted position
     wide_search_radius_px: float = 45.0  # ... when the first search explains too little

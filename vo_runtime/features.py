@@ -8,7 +8,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from vo_runtime.artefact import verify_artefact
+from vo_runtime.artefact import aspect_distortion, verify_artefact
 from vo_runtime.errors import ArtefactError, FrameError, VORuntimeError, first_line
 
 MIN_FRAME_SIDE = 16  # smaller frames carry no trackable structure (and break the 8-px network cell)
@@ -127,8 +127,7 @@ class FeatureExtractor:
         (0: same aspect; 1.48 for KITTI's 1226x370 into 320x240). Detections are only as precise as the
         coarser axis: without patch alignment the squeezed 240x320 artefact's VO drifted 4.6 m (ATE, KITTI 07)
         against 0.64 m for the same weights exported at 184x608; with it, 0.36 m (docs/vo.md)."""
-        ratio = (width / height) / (self.width / self.height)
-        return max(ratio, 1.0 / ratio) - 1.0
+        return aspect_distortion((self.height, self.width), height, width)
 
     def __call__(self, image: np.ndarray) -> Features:
         """Extract features from an HxW gray or HxWx3 BGR image."""

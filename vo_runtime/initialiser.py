@@ -121,7 +121,8 @@ class Initialiser:
         # Keep the hypothesis that triangulates the most points (in front, small error, enough parallax).
         best = []
         for hypothesis in relative_pose_hypotheses(pts_ref, pts_cur, cfg.ransac_threshold_px / self.focal):
-            if np.count_nonzero(hypothesis.inliers) < cfg.init_min_landmarks:
+            explained = np.count_nonzero(hypothesis.inliers)
+            if explained < cfg.init_min_landmarks or explained < cfg.init_min_inlier_share * len(rows):
                 continue
             pose = make_pose(hypothesis.rotation, scale * hypothesis.translation) @ ref_pose
             inliers = rows[hypothesis.inliers]
