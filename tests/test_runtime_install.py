@@ -19,7 +19,7 @@ import pytest
 from packaging.requirements import Requirement
 
 REPO = Path(__file__).resolve().parents[1]
-RUNTIME_REQUIREMENTS = {"numpy", "opencv-python-headless", "scipy", "onnxruntime", "threadpoolctl"}
+RUNTIME_REQUIREMENTS = {"numpy", "opencv-python-headless", "scipy", "onnxruntime", "threadpoolctl", "pyyaml"}
 
 
 def _base_requirements(wheel: Path) -> list[Requirement]:
