@@ -1,6 +1,8 @@
-"""The runtime-only install: the wheel without extras runs the VO on a real sequence and never sees torch.
+"""The runtime-only install: the edgefeat-runtime wheel (built from runtime/) puts only vo_runtime on the path,
+runs the VO on a real sequence and never sees torch; the full edgefeat wheel without extras names the extra
+its toolkit lacks.
 
-A fresh virtualenv gets the wheel (no extras) and exactly the distributions its base requirements pull in,
+A fresh virtualenv gets a wheel (no extras) and exactly the distributions its base requirements pull in,
 resolved from the wheel's own metadata (so nothing is downloaded: each is linked from this environment).
 Torch, onnx, evo, matplotlib and tqdm are therefore not importable there at all.
 """
@@ -20,6 +22,14 @@ from packaging.requirements import Requirement
 
 REPO = Path(__file__).resolve().parents[1]
 RUNTIME_REQUIREMENTS = {"numpy", "opencv-python-headless", "scipy", "onnxruntime", "threadpoolctl", "pyyaml"}
+TOOLKIT_PACKAGES = ("models", "export", "profiles", "toolkit")
+
+
+def build_wheel(source: Path, folder: Path) -> Path:
+    """``pip wheel`` of one of the two distributions (the repository root, or runtime/), as the README says."""
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(folder),
+                    str(source)], check=True, capture_output=True)
+    return next(folder.glob("*.whl"))
 
 
 def _base_requirements(wheel: Path) -> list[Requirement]:
@@ -56,12 +66,8 @@ def _link_distributions(dists: list[metadata.Distribution], folder: Path) -> Non
                 (folder / top).symlink_to(source)
 
 
-@pytest.fixture(scope="module")
-def runtime_venv(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    root = tmp_path_factory.mktemp("runtime")
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w",
-                    str(root / "wheel"), str(REPO)], check=True, capture_output=True)
-    wheel = next((root / "wheel").glob("edgefeat-*.whl"))
+def _install_in_fresh_venv(wheel: Path, root: Path) -> Path:
+    """A virtualenv under ``root`` holding ``wheel`` and the installed distributions of its base requirements."""
     requirements = _base_requirements(wheel)
     assert {r.name for r in requirements} == RUNTIME_REQUIREMENTS  # the base install is the runtime, no more
     venv = root / "venv"
@@ -73,9 +79,20 @@ def runtime_venv(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     # (the developer's editable install), even though it installs into another prefix.
     subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--ignore-installed", "-q", "--prefix",
                     str(venv), str(wheel)], check=True, capture_output=True)
-    work = root / "elsewhere"
-    work.mkdir()
-    return venv, work
+    (root / "elsewhere").mkdir()
+    return venv
+
+
+@pytest.fixture(scope="module")
+def wheels(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    folder = tmp_path_factory.mktemp("wheels")
+    return {"runtime": build_wheel(REPO / "runtime", folder / "runtime"), "full": build_wheel(REPO, folder / "full")}
+
+
+@pytest.fixture(scope="module")
+def runtime_venv(tmp_path_factory: pytest.TempPathFactory, wheels: dict[str, Path]) -> tuple[Path, Path]:
+    root = tmp_path_factory.mktemp("runtime")
+    return _install_in_fresh_venv(wheels["runtime"], root), root / "elsewhere"
 
 
 def _run(venv: Path, work: Path, *args: str) -> subprocess.CompletedProcess:
@@ -105,15 +122,45 @@ def test_the_runtime_runs_the_vo_on_a_real_sequence_without_torch(runtime_venv, 
     assert (work / "run" / "trajectory_tum.txt").is_file() and not (work / "run" / "trajectory.png").exists()
 
 
-def test_the_runtime_install_names_the_extras_it_lacks(runtime_venv, shared_data: Path) -> None:
+def test_the_runtime_wheel_holds_vo_runtime_alone_at_the_version_of_the_tree(wheels: dict[str, Path]) -> None:
+    from vo_runtime.version import __version__
+
+    runtime, full = (zipfile.ZipFile(wheels[name]) for name in ("runtime", "full"))
+    tops = {name.split("/")[0] for name in runtime.namelist()}
+    assert tops == {"vo_runtime", f"edgefeat_runtime-{__version__}.dist-info"}
+    assert "vo_runtime/default_artefact/model.onnx" in runtime.namelist()
+    # the full wheel carries the very same runtime files, so either install gives the same vo_runtime
+    runtime_files = {n for n in runtime.namelist() if n.startswith("vo_runtime/")}
+    assert runtime_files == {n for n in full.namelist() if n.startswith("vo_runtime/")}
+    assert all(runtime.read(n) == full.read(n) for n in runtime_files)
+    assert wheels["full"].name.startswith(f"edgefeat-{__version__}-")
+    assert _base_requirements(wheels["runtime"]) == _base_requirements(wheels["full"])
+
+
+def test_only_vo_runtime_is_importable_from_the_runtime_install(runtime_venv) -> None:
     venv, work = runtime_venv
+    probe = ("import importlib.util, json\n"
+             f"print(json.dumps({{name: importlib.util.find_spec(name) is not None for name in {TOOLKIT_PACKAGES + ('vo_runtime',)!r}}}))")
+    result = _run(venv, work, "-c", probe)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert json.loads(result.stdout) == {**{name: False for name in TOOLKIT_PACKAGES}, "vo_runtime": True}
+    assert not (venv / "bin" / "toolkit").exists()
+
+
+def test_the_runtime_install_names_the_extra_it_lacks(runtime_venv, shared_data: Path) -> None:
+    venv, work = runtime_venv
+    gt = _run(venv, work, "-m", "vo_runtime", "--images", str(shared_data / "kitti_odom07_f000000-000159"),
+              "--gt", "auto", "--max-frames", "3")
+    lines = gt.stderr.strip().splitlines()
+    assert gt.returncode == 2 and len(lines) == 1 and "edgefeat[eval]" in lines[0]
+
+
+def test_the_full_wheel_without_extras_names_the_toolkit_extra(tmp_path: Path, wheels: dict[str, Path]) -> None:
+    venv = _install_in_fresh_venv(wheels["full"], tmp_path)
+    work = tmp_path / "elsewhere"
     # The console script, run by the venv's interpreter (pip ran from this environment wrote its shebang).
     toolkit = _run(venv, work, str(venv / "bin" / "toolkit"), "export", "--target", "tx2", "-o", "out")
     assert toolkit.returncode == 2 and toolkit.stdout == ""
     lines = toolkit.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: toolkit needs the 'edgefeat[toolkit]' extra")
     assert "torch" in lines[0] and not (work / "out").exists()
-    gt = _run(venv, work, "-m", "vo_runtime", "--images", str(shared_data / "kitti_odom07_f000000-000159"),
-              "--gt", "auto", "--max-frames", "3")
-    lines = gt.stderr.strip().splitlines()
-    assert gt.returncode == 2 and len(lines) == 1 and "edgefeat[eval]" in lines[0]

@@ -1,3 +1,5 @@
 """EdgeFeat toolkit: train, export, profile and evaluate a keypoint network for edge targets."""
 
-__version__ = "0.1.0"
+from vo_runtime.version import __version__  # one version for the toolkit and the runtime (CHANGELOG.md)
+
+__all__ = ["__version__"]
