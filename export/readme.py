@@ -21,7 +21,14 @@ The graph is opset {manifest['onnx']['opset']} with fixed shapes and only ops Te
 decomposed into Gather + arithmetic). Inputs and outputs stay FP32; `--fp16` lets TensorRT run layers in FP16.
 Every gather index is int32 arithmetic on values exact in FP16, so whichever layers TensorRT puts in FP16,
 keypoints stay in place (checked on a CPU with every layer converted to FP16: >= 98.7 % of keypoints within
-0.5 px of FP32; not yet run on a TX2). Check the engine's keypoints against this directory's parity run.
+0.5 px of FP32; not yet run on a TX2). Check the engine against this directory's parity run (the inputs
+and outputs in reference.npz), with the runtime installed on the Jetson:
+
+```
+python -m vo_runtime verify . --engine {engine}      # the engine itself, run by trtexec
+python -m vo_runtime verify . --providers tensorrt     # onnxruntime's TensorRT provider (FP16), as the VO runs it
+```
+
 Do not build INT8: the TX2's Pascal GPU has no fast INT8 path.
 """
 
@@ -36,6 +43,9 @@ from vo_runtime import FeatureExtractor
 extract = FeatureExtractor("path/to/this/directory", threads=2)
 features = extract(gray_or_bgr_image)   # keypoints [N,2], scores [N], descriptors [N,D]
 ```
+
+Check that this machine's onnxruntime reproduces the parity run (the inputs and outputs in reference.npz):
+`python -m vo_runtime verify path/to/this/directory`.
 """
 
 

@@ -147,6 +147,14 @@ def test_only_vo_runtime_is_importable_from_the_runtime_install(runtime_venv) ->
     assert not (venv / "bin" / "toolkit").exists()
 
 
+def test_the_runtime_install_verifies_its_shipped_artefact_without_torch(runtime_venv) -> None:
+    venv, work = runtime_venv
+    site = next((venv / "lib").glob("python3*/site-packages"))
+    result = _run(venv, work, "-m", "vo_runtime", "verify", str(site / "vo_runtime" / "default_artefact"), "--json")
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert json.loads(result.stdout)["passed"]
+
+
 def test_the_runtime_install_names_the_extra_it_lacks(runtime_venv, shared_data: Path) -> None:
     venv, work = runtime_venv
     gt = _run(venv, work, "-m", "vo_runtime", "--images", str(shared_data / "kitti_odom07_f000000-000159"),

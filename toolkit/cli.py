@@ -25,6 +25,7 @@ COMMAND_MODULES: list[str] = [
     "toolkit.cmd_quantise",
     "toolkit.cmd_profile",
     "toolkit.cmd_vo",
+    "toolkit.cmd_verify",
 ]
 
 

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from vo_runtime.artefact import aspect_distortion, verify_artefact
-from vo_runtime.errors import ArtefactError, FrameError, VORuntimeError, first_line
+from vo_runtime.errors import ArtefactError, FrameError, VORuntimeError
 
 MIN_FRAME_SIDE = 16  # smaller frames carry no trackable structure (and break the 8-px network cell)
 
@@ -87,9 +87,7 @@ class FeatureExtractor:
 
     def __init__(self, artefact: str | Path, threads: int = 1, resize_policy: str | None = None,
                  providers: str | Sequence[str] | None = "auto") -> None:
-        import onnxruntime as ort
-
-        from vo_runtime.providers import choose_providers, parse_providers, short_name
+        from vo_runtime.providers import open_session, short_name
 
         if not isinstance(threads, (int, np.integer)) or threads < 0:
             raise VORuntimeError(f"threads must be an integer >= 0 (0: onnxruntime's choice), got {threads!r}")
@@ -106,19 +104,7 @@ class FeatureExtractor:
         self.resize_policy = resize_policy or self.manifest["input"].get("resize_policy", "resize")
         if self.resize_policy not in ("resize", "reject"):
             raise ArtefactError(f"unknown resize policy {self.resize_policy!r}")
-        chain = choose_providers(parse_providers(providers), ort.get_available_providers())
-        for name, settings in chain:
-            if "trt_engine_cache_path" in settings:  # TensorRT writes engines there; it must exist first
-                Path(settings["trt_engine_cache_path"]).mkdir(parents=True, exist_ok=True)
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = int(threads)
-        options.inter_op_num_threads = 1
-        try:
-            self.session = ort.InferenceSession(str(self.directory / self.manifest["onnx"]["file"]), options,
-                                                providers=[name for name, _ in chain],
-                                                provider_options=[settings for _, settings in chain])
-        except Exception as exc:  # onnxruntime raises several unrelated types for a bad model
-            raise ArtefactError(f"onnxruntime cannot load {self.directory}: {first_line(exc)}") from None
+        self.session = open_session(self.directory / self.manifest["onnx"]["file"], threads, providers)
         self.providers = [short_name(p) for p in self.session.get_providers()]
         self.input_name = self.session.get_inputs()[0].name
 

@@ -10,7 +10,7 @@ import os
 from pathlib import Path
 from typing import Any, Sequence
 
-from vo_runtime.errors import VORuntimeError
+from vo_runtime.errors import ArtefactError, VORuntimeError, first_line
 
 # Short names a user types, in the order "auto" prefers them.
 PROVIDER_NAMES = {
@@ -87,3 +87,26 @@ def short_name(provider: str) -> str:
         if full == provider:
             return name
     return provider
+
+
+def open_session(model_path: str | Path, threads: int = 1, providers: str | Sequence[str] | None = "auto") -> Any:
+    """An onnxruntime session on ``model_path`` with the providers asked for (`parse_providers`), TensorRT's engine
+    cache folder made first. ``short_name`` of ``session.get_providers()`` says what it really runs on.
+
+    Raises:
+        VORuntimeError: a bad or missing provider, or a model onnxruntime cannot load (one line).
+    """
+    import onnxruntime as ort
+
+    chain = choose_providers(parse_providers(providers), ort.get_available_providers())
+    for _, settings in chain:
+        if "trt_engine_cache_path" in settings:  # TensorRT writes engines there; it must exist first
+            Path(settings["trt_engine_cache_path"]).mkdir(parents=True, exist_ok=True)
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = int(threads)
+    options.inter_op_num_threads = 1
+    try:
+        return ort.InferenceSession(str(model_path), options, providers=[name for name, _ in chain],
+                                    provider_options=[settings for _, settings in chain])
+    except Exception as exc:  # onnxruntime raises several unrelated types for a bad model
+        raise ArtefactError(f"onnxruntime cannot load {Path(model_path).parent}: {first_line(exc)}") from None
