@@ -20,17 +20,17 @@ from export.graphs import DENSE_OUTPUTS, KEYPOINT_OUTPUTS, DenseGraph, KeypointG
 from export.onnx_export import check_before_writing, export_onnx, op_histogram
 from export.parity import MIN_PARITY_KEYPOINTS, default_parity_paths, images_in, measure_parity, prepare_parity_image
 from export.readme import artefact_readme
+from export.reference import reference_images, write_cpu_references
 from models.checkpoint import load_checkpoint
 from models.deform import set_deform_strategy
 from models.keypoints import is_score_window
 from models.featurenet import set_elu_form
 from profiles import TargetProfile, load_profile
 from toolkit import __version__
-from toolkit.atomic import OutputKind, atomic_directory, check_output_dir
 from toolkit.errors import ToolkitError
 from toolkit.sizes import MAX_SIDE, MIN_SIDE
-from vo_runtime.artefact import ARTEFACT_FORMAT, MANIFEST_NAME, MODEL_NAME, load_manifest, sha256_file
-from vo_runtime.errors import ArtefactError
+from vo_runtime.artefact import ARTEFACT_FORMAT, MANIFEST_NAME, MODEL_NAME, sha256_file
+from vo_runtime.outputs import OutputClaim, OutputKind, claim_output
 
 # FP16 weights move scores by ~1e-3, enough to reorder near-tied keypoints at the top-K cut.
 MIN_IDENTICAL = {"fp32": 0.99, "fp16": 0.90}
@@ -53,23 +53,8 @@ class ExportOptions:
     parity_images: Path | None = None
 
 
-ARTEFACT_FILES = (MODEL_NAME, MANIFEST_NAME, "README.md")
-
-
-def artefact_manifest(directory: Path) -> dict | None:
-    """The manifest of an artefact directory, or None when there is no readable one (never raises)."""
-    try:
-        return load_manifest(directory)
-    except ArtefactError:
-        return None
-
-
-# What --force may replace: an artefact this command wrote before (a manifest without a quantisation record).
-EXPORTED_ARTEFACT = OutputKind(
-    "an artefact written by toolkit export",
-    lambda path: (manifest := artefact_manifest(path)) is not None and "quantisation" not in manifest,
-    lambda name: name in ARTEFACT_FILES,
-)
+# What --force may replace: an artefact this command wrote before, as its listing records (vo_runtime.outputs).
+EXPORTED_ARTEFACT = OutputKind("exported-artefact", "an artefact written by toolkit export")
 
 
 def _resolve(options: ExportOptions, profile: TargetProfile) -> tuple[tuple[int, int], str, int]:
@@ -106,7 +91,16 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
     profile = load_profile(options.target)
     (height, width), precision, max_keypoints = _resolve(options, profile)
     output = Path(options.output)
-    check_output_dir(output, EXPORTED_ARTEFACT, options.force)
+    inputs = [options.checkpoint, options.parity_images]
+    with claim_output(output, EXPORTED_ARTEFACT, options.force, inputs, ToolkitError) as claim:
+        _export_into(claim, options, profile, (height, width), precision, max_keypoints, log)
+    return output
+
+
+def _export_into(claim: OutputClaim, options: ExportOptions, profile: TargetProfile, size: tuple[int, int],
+                 precision: str, max_keypoints: int, log) -> None:
+    """Build, check and measure the graphs, then write the artefact through ``claim`` (held by the caller)."""
+    height, width = size
     # Every input is read before the first export step, so a bad one fails in a second.
     paths = images_in(options.parity_images) if options.parity_images else default_parity_paths()
     images = [prepare_parity_image(path, height, width) for path in paths]
@@ -147,7 +141,7 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
             f"parity failed: only {parity.keypoints_identical:.1%} of keypoints identical to PyTorch (need {required:.0%})"
         )
 
-    with atomic_directory(output) as staging:
+    with claim.writing() as staging:
         onnx.save(final_model, str(staging / MODEL_NAME))
         manifest = {
             "format": ARTEFACT_FORMAT,
@@ -172,10 +166,12 @@ def export_artefact(options: ExportOptions, log=print) -> Path:
             "postprocess": {"max_keypoints": max_keypoints, "nms_radius": options.nms_radius,
                             "score_window": options.score_window, "detection_threshold": options.threshold, "border": options.border},
             "parity": {**parity.to_dict(), "required_identical": required, "min_gather_index": lowest_gather},
+            # the parity run's inputs and this graph's outputs for them, for `python -m vo_runtime verify`
+            "reference": write_cpu_references(staging, MODEL_NAME, reference_images(paths, height, width), 1.0 / 255.0,
+                                              "dense" if options.dense else "keypoints"),
         }
         (staging / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
         (staging / "README.md").write_text(artefact_readme(manifest, profile))
-    return output
 
 
 def _describe_outputs(dense: bool, k: int, height: int, width: int, net: torch.nn.Module) -> dict:

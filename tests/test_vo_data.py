@@ -32,7 +32,7 @@ def test_cli_with_an_artefact_on_tum(shared_data, artefact, tmp_path, capsys):
     # 0.44 m of hand-held camera path; this Harris fixture measured 0.007 m.
     assert summary["ate_rmse_m"] < 0.03 and summary["frames_evaluated"] >= 15
     assert sorted(p.name for p in out.iterdir()) == [
-        "frames.json", "summary.json", "trajectory.png", "trajectory_kitti.txt", "trajectory_tum.txt"]
+        ".edgefeat-output.json", "frames.json", "summary.json", "trajectory.png", "trajectory_kitti.txt", "trajectory_tum.txt"]
     assert len((out / "trajectory_tum.txt").read_text().splitlines()) == 20
 
 

@@ -4,14 +4,16 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
 from toolkit import __version__
+from toolkit.atomic import OutputClaim
 from toolkit.errors import ToolkitError
 from toolkit.evaluation.datasets import ImagePair, parse_size, read_hpatches, read_registered_pairs
 from toolkit.evaluation.detectors import DetectorConfig, load_detector
-from toolkit.evaluation.report import check_output_dir, format_terminal_table, write_report
+from toolkit.evaluation.report import claim_report_dir, format_terminal_table, write_report
 from toolkit.evaluation.runner import EvalConfig, ImageCache, evaluate_model, group_summaries, pair_records
 
 MODEL_HELP = ("model to evaluate, repeatable: default / default-relu (the shipped weights), orb, sift, an artefact "
@@ -113,8 +115,13 @@ def run(args: argparse.Namespace) -> int:
     config = EvalConfig(size=parse_size(args.size), correct_threshold=args.threshold, normalise=args.normalise)
     detector_config = DetectorConfig(max_keypoints=args.max_keypoints, nms_radius=args.nms,
                                      score_window=args.score_window)
-    if args.output is not None:
-        check_output_dir(args.output)
+    with claim_report_dir(args.output) if args.output is not None else nullcontext() as claim:
+        return _evaluate(args, config, detector_config, claim)
+
+
+def _evaluate(args: argparse.Namespace, config: EvalConfig, detector_config: DetectorConfig,
+              claim: OutputClaim | None) -> int:
+    """Every model on every pair, the table printed and, with ``claim``, the report written there."""
     pairs = _read_pairs(args)
     # Load every model before the first pair, so a bad spec fails in a second rather than after a long run.
     detectors = [load_detector(spec, detector_config) for spec in (args.model or ["default", "orb", "sift"])]
@@ -142,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
         "models": models,
     }
     print(format_terminal_table(report))
-    if args.output is not None:
-        write_report(args.output, report, examples)
+    if claim is not None:
+        write_report(claim, report, examples)
         print(f"report written to {args.output}", file=sys.stderr)
     return 0

@@ -3,10 +3,12 @@ from __future__ import annotations
 
 import argparse
 import os
+from contextlib import nullcontext
 from pathlib import Path
 
 from toolkit.sizes import parse_size
 from profiles import TargetProfile, load_profile
+from toolkit.atomic import OutputClaim
 from toolkit.errors import ToolkitError
 
 EXAMPLES = """examples:
@@ -86,10 +88,16 @@ def run(args: argparse.Namespace) -> int:
     profiles = _profiles(args.target)
     if args.calibrate:
         return _run_calibration(args, profiles)
-    from toolkit.profiling.report import check_report_dir
+    from toolkit.profiling.report import claim_report_dir
 
-    if args.output:  # before minutes of measuring, not after
-        check_report_dir(args.output, args.force)
+    inputs = [Path(spec) for spec in args.model or [] if Path(spec).exists()]
+    # Claimed before minutes of measuring, not after, and held until the report is in place.
+    with claim_report_dir(args.output, args.force, inputs) if args.output else nullcontext() as claim:
+        return _profile(args, profiles, claim)
+
+
+def _profile(args: argparse.Namespace, profiles: list[TargetProfile], claim: OutputClaim | None) -> int:
+    """Measure and predict every model on every target; print the report and write it through ``claim``."""
     from toolkit.profiling.profile import build_report
     from toolkit.profiling.report import terminal_text, write_outputs
     from toolkit.profiling.roofline import hardware_model, load_calibration
@@ -117,8 +125,8 @@ def run(args: argparse.Namespace) -> int:
     print(terminal_text(report))
     if calibration is not None and calibration.get("threads") not in (None, args.threads):
         print(f"note: the calibration was measured with {calibration['threads']} thread(s), this run uses {args.threads}")
-    if args.output:
-        write_outputs(report, args.output, args.force)
+    if claim is not None:
+        write_outputs(report, claim)
         print(f"wrote {args.output}/profile.json, profile.md, profile.png")
     return 0
 

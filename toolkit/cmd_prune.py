@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from toolkit.sizes import parse_size
@@ -64,11 +63,7 @@ def run(args: argparse.Namespace) -> int:
         images=args.images, labels=args.labels, steps=args.steps, size=parse_size(args.size), batch=args.batch,
         lr=args.lr, force=args.force, evaluate=not args.no_eval,
     )
-    report = prune_checkpoint(options)
-    sidecar = Path(report.output).with_suffix(".json")
-    staging = sidecar.with_name(f".{sidecar.name}.tmp")
-    staging.write_text(json.dumps(report.to_dict(), indent=2) + "\n")
-    staging.replace(sidecar)  # never a half-written report
+    report = prune_checkpoint(options)  # writes the checkpoint and its .json report
     print(format_report(report))
     print(f"wrote {report.output} (export it with: toolkit export --target <tx2|x86-cpu> --checkpoint {report.output} -o DIR)")
     return 0

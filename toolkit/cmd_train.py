@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from toolkit.atomic import check_output_path
+from toolkit.atomic import locked_output_dir
 from toolkit.training.trainer import TrainConfig, read_config_file, resolve_config, train
 
 EPILOG = """examples:
@@ -28,7 +28,13 @@ def run(args: argparse.Namespace) -> int:
     if args.resume and args.config:
         raise ToolkitError("--config cannot be combined with --resume: a resumed run keeps its own config")
     run_dir = Path(args.out)
-    check_output_path(run_dir)  # a run folder below a regular file cannot be made: say so before reading anything
+    with locked_output_dir(run_dir):  # one training per run folder at a time, from the first check to the end
+        return _train_into(args, run_dir)
+
+
+def _train_into(args: argparse.Namespace, run_dir: Path) -> int:
+    from toolkit.errors import ToolkitError
+
     config = read_config_file(args.config) if args.config else TrainConfig()
     config = resolve_config(run_dir, args.resume, config, args.steps, args.batch)
     if args.workers is not None:  # allowed on --resume too: samples do not depend on the worker count

@@ -22,19 +22,20 @@ from pathlib import Path
 import numpy as np
 import onnx
 
-from export.artefact import ARTEFACT_FILES, MIN_IDENTICAL, artefact_manifest
+from export.artefact import MIN_IDENTICAL
 from export.half import to_fp16
 from export.checks import check_against_profile, require_non_negative_gathers
 from export.graph_order import topologically_sorted
 from export.onnx_export import check_before_writing, op_histogram
 from export.parity import default_parity_paths, prepare_image
-from profiles import load_profile
+from export.reference import reference_images, write_cpu_references
+from profiles import TargetProfile, load_profile
 from toolkit import __version__
 from export.parity import SHIPPED_PARITY_DIR
 from toolkit.compression.images import load_images
 from toolkit.compression.report import interleaved_median_ms, ort_drift, ort_session
 from toolkit.compression.sensitivity import fixed_kernel_convs, head_output_convs, layer_sensitivity, single_channel_convs
-from toolkit.atomic import OutputKind, atomic_directory, check_output_dir
+from toolkit.atomic import OutputClaim, OutputKind, claim_output_dir
 from toolkit.errors import ToolkitError
 from vo_runtime.artefact import MANIFEST_NAME, MODEL_NAME, sha256_file, verify_artefact
 
@@ -116,18 +117,8 @@ def quantise_fp16(model: onnx.ModelProto) -> onnx.ModelProto:
     return to_fp16(model)
 
 
-# What --force may replace: an artefact this command wrote before (its manifest records the quantisation).
-QUANTISED_ARTEFACT = OutputKind(
-    "a quantised artefact written by toolkit quantise",
-    lambda path: (manifest := artefact_manifest(path)) is not None and "quantisation" in manifest,
-    lambda name: name in ARTEFACT_FILES,
-)
-
-
-def _check_output(output: Path, force: bool, source: Path) -> None:
-    if output.resolve() == source.resolve():
-        raise ToolkitError("the quantised artefact needs its own directory (-o must differ from --artefact)")
-    check_output_dir(output, QUANTISED_ARTEFACT, force)
+# What --force may replace: an artefact this command wrote before, as its listing records (vo_runtime.outputs).
+QUANTISED_ARTEFACT = OutputKind("quantised-artefact", "a quantised artefact written by toolkit quantise")
 
 
 def _parity_images(height: int, width: int) -> tuple[np.ndarray, list[str]]:
@@ -149,6 +140,10 @@ def quantise_artefact(options: QuantiseOptions, log=print) -> Path:
                            "than FP16); use --mode fp16")
     if options.mode == "int8" and not profile.runtime.startswith("onnxruntime"):
         raise ToolkitError(f"int8 needs an onnxruntime target; {profile.name} runs {profile.runtime}")
+    if manifest.get("precision_applied") == "tensorrt-build-flag":  # the tx2 default: FP16 is trtexec --fp16
+        raise ToolkitError(f"{source} is already an FP16 artefact for TensorRT (trtexec --fp16 builds its FP32 graph in "
+                           "FP16 on the device): deploy it as it is; for FP16 weights in the file, export with "
+                           "--precision fp32 and quantise that")
     if manifest.get("precision_applied", "fp32") != "fp32":
         raise ToolkitError(f"{source} is already {manifest.get('precision_applied')}; quantise the FP32 artefact")
     if options.calibration_count < 1:
@@ -156,7 +151,16 @@ def quantise_artefact(options: QuantiseOptions, log=print) -> Path:
     if options.keep_sensitive < 0:
         raise ToolkitError(f"--keep-sensitive must be >= 0, got {options.keep_sensitive}")
     output = Path(options.output)
-    _check_output(output, options.force, source)
+    if output.resolve() == source.resolve():
+        raise ToolkitError("the quantised artefact needs its own directory (-o must differ from --artefact)")
+    with claim_output_dir(output, QUANTISED_ARTEFACT, options.force, [source, options.calibration]) as claim:
+        _quantise_into(claim, options, source, manifest, profile, log)
+    return output
+
+
+def _quantise_into(claim: OutputClaim, options: QuantiseOptions, source: Path, manifest: dict,
+                   profile: TargetProfile, log) -> None:
+    """Quantise, check and measure, then write the new artefact through ``claim`` (held by the caller)."""
     model = onnx.load(str(source / manifest["onnx"]["file"]))
     _name_unnamed_nodes(model)
     height, width = manifest["input"]["shape"][2:]
@@ -218,13 +222,15 @@ def quantise_artefact(options: QuantiseOptions, log=print) -> Path:
         "source_artefact": {"path": str(source), "onnx_sha256": manifest["onnx"]["sha256"]},
         "quantisation": details,
     })
-    with atomic_directory(output) as staging:
+    with claim.writing() as staging:
         onnx.save(quantised, str(staging / MODEL_NAME))
         new_manifest["onnx"] = {**manifest["onnx"], "file": MODEL_NAME, "sha256": sha256_file(staging / MODEL_NAME),
                                 "op_types": op_histogram(quantised), "checker": checker}
+        # this graph's own outputs on the parity images, for `python -m vo_runtime verify`
+        new_manifest["reference"] = write_cpu_references(staging, MODEL_NAME, reference_images(default_parity_paths(), height, width),
+                                                         float(manifest["input"]["normalisation"]["scale"]), manifest["mode"])
         (staging / MANIFEST_NAME).write_text(json.dumps(new_manifest, indent=2) + "\n")
         (staging / "README.md").write_text(_readme(new_manifest))
-    return output
 
 
 def _readme(manifest: dict) -> str:

@@ -15,8 +15,9 @@ from toolkit.compression.images import default_image_dir, load_images
 from toolkit.compression.prune import (count_macs, count_parameters, prune_channels, ratio_for_target_macs,
                                        rebuild)
 from toolkit.compression.report import Drift, interleaved_median_ms, torch_drift
-from toolkit.atomic import check_output_path
+from toolkit.atomic import FilesClaim, check_output_path, claim_output_files
 from toolkit.errors import ToolkitError
+from vo_runtime.atomic_file import write_json_atomic
 
 MEASURE_IMAGES = 8  # drift images; spread over the image folder
 MAX_BATCH = 64  # images per distillation step; far more runs out of memory at 240x320 on a CPU
@@ -115,7 +116,7 @@ def check_prune_output(output: Path, checkpoint: Path, force: bool) -> None:
     if output.resolve() == checkpoint.resolve():
         raise ToolkitError(f"-o {output} is the checkpoint being pruned: pruning never replaces its source")
     for path, is_own, what in ((output, _is_pruned_checkpoint, "a checkpoint written by toolkit prune"),
-                               (output.with_suffix(".json"), _is_prune_report, "a report written by toolkit prune")):
+                               (report_path(output), _is_prune_report, "a report written by toolkit prune")):
         if not (path.exists() or path.is_symlink()):
             continue
         if not path.is_file() or not is_own(path):
@@ -171,8 +172,19 @@ def prune_checkpoint(options: PruneOptions, log=print, progress: bool = True) ->
     output = Path(options.output) if options.output else default_output(checkpoint, ratio)
     if not options.output and checkpoint.resolve().parent == WEIGHTS_DIR:
         output = Path.cwd() / output.name  # never write beside the shipped weights, inside the package
-    check_prune_output(output, checkpoint, options.force)
+    with claim_output_files([output, report_path(output)]) as claim:
+        check_prune_output(output, checkpoint, options.force)
+        return _prune_into(claim, options, checkpoint, teacher, info, images, measure, ratio, output, log, progress)
 
+
+def report_path(output: Path) -> Path:
+    """The JSON report written beside a pruned checkpoint."""
+    return output.with_suffix(".json")
+
+
+def _prune_into(claim: FilesClaim, options: PruneOptions, checkpoint: Path, teacher: FeatureNet, info, images: Path,
+                measure, ratio: float, output: Path, log, progress: bool) -> PruneReport:
+    """Prune, distil and measure, then write the checkpoint and its report (``claim`` held by the caller)."""
     student = prune_channels(teacher, ratio)
     log(f"pruned {ratio:.0%} of channels: widths {teacher.config.widths} -> {student.config.widths}, "
         f"heads {teacher.config.head_channels} -> {student.config.head_channels}")
@@ -200,7 +212,9 @@ def prune_checkpoint(options: PruneOptions, log=print, progress: bool = True) ->
     )
     metadata = {**info.metadata, "pruned_from": {"checkpoint": Path(info.path).name, "sha256": info.sha256},
                 "pruning": json.loads(json.dumps(report.to_dict()))}
+    claim.check_unchanged()
     save_checkpoint(student, output, metadata)
+    write_json_atomic(report_path(output), report.to_dict())
     return report
 
 

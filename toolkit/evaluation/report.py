@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import json
 import re
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from toolkit.atomic import OutputKind, atomic_directory
-from toolkit.atomic import check_output_dir as check_replaceable_dir
+from toolkit.atomic import OutputClaim, OutputKind, claim_output_dir
 from toolkit.evaluation.metrics import warp_points
 from toolkit.evaluation.runner import PairExample
 
@@ -114,21 +114,19 @@ def plot_matches(example: PairExample, path: Path, label: str, threshold: float 
 
 
 # An earlier report is replaced (eval has no --force: its reports are cheap to remake); anything else is refused.
-EVAL_REPORT = OutputKind(
-    "an eval report", lambda path: (path / REPORT_JSON).is_file(),
-    lambda name: name in (REPORT_JSON, REPORT_MARKDOWN) or bool(re.fullmatch(r"matches_.+\.png", name)),
-)
+EVAL_REPORT = OutputKind("eval-report", "an eval report")
 
 
-def check_output_dir(path: Path) -> None:
-    """Refuse a target below a file, a file, or a non-empty directory that is not only a previous report."""
-    check_replaceable_dir(path, EVAL_REPORT, force=True)
+def claim_report_dir(path: Path) -> AbstractContextManager[OutputClaim]:
+    """Hold ``path`` for a report: refused below a file, on a file, or on a non-empty folder that is not only
+    an earlier report (`vo_runtime.outputs`)."""
+    return claim_output_dir(path, EVAL_REPORT, True)
 
 
-def write_report(path: Path, report: dict[str, Any], examples: dict[str, PairExample]) -> None:
-    """Write results.json, results.md and the match PNGs into a temp dir beside ``path``, then swap it in."""
-    check_output_dir(path)
-    with atomic_directory(path) as staging:
+def write_report(claim: OutputClaim, report: dict[str, Any], examples: dict[str, PairExample]) -> None:
+    """Write results.json, results.md and the match PNGs into a temp dir beside the claimed folder, then swap
+    it in."""
+    with claim.writing() as staging:
         (staging / REPORT_JSON).write_text(json.dumps(report, indent=2) + "\n")
         (staging / REPORT_MARKDOWN).write_text(format_markdown(report))
         for label, example in examples.items():

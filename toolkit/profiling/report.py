@@ -4,9 +4,10 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+from contextlib import AbstractContextManager
 from pathlib import Path
 
-from toolkit.atomic import OutputKind, atomic_directory, check_output_dir
+from toolkit.atomic import OutputClaim, OutputKind, claim_output_dir
 
 TOP_LAYERS = 12
 HOST_TARGET = "x86-cpu"  # the target whose prediction is checked against this host's measurement
@@ -141,25 +142,21 @@ def plot_layers(report: dict, path: Path) -> None:
     plt.close(fig)
 
 
-REPORT_FILES = ("profile.json", "profile.md", "profile.png")
-# What --force may replace: a report this command wrote before (its profile.json) and nothing else.
-PROFILE_REPORT = OutputKind("a profile report written by toolkit profile", lambda path: (path / "profile.json").is_file(),
-                            lambda name: name in REPORT_FILES)
+# What --force may replace: a report this command wrote before, as its listing records (vo_runtime.outputs).
+PROFILE_REPORT = OutputKind("profile-report", "a profile report written by toolkit profile")
 
 
-def check_report_dir(output: Path, force: bool) -> None:
-    """Refuse an output that is not absent, empty, or (with ``force``) an earlier profile report."""
-    check_output_dir(output, PROFILE_REPORT, force)
+def claim_report_dir(output: Path, force: bool, inputs: list[Path]) -> AbstractContextManager[OutputClaim]:
+    """Hold ``output`` for a report: absent, empty, or (with ``force``) an earlier profile report."""
+    return claim_output_dir(output, PROFILE_REPORT, force, inputs)
 
 
-def write_outputs(report: dict, output: Path, force: bool) -> Path:
-    """Write profile.json, profile.md and profile.png into ``output`` via a staging directory and a rename."""
-    check_report_dir(output, force)
-    with atomic_directory(output) as staging:
+def write_outputs(report: dict, claim: OutputClaim) -> None:
+    """Write profile.json, profile.md and profile.png via a staging directory swapped in by ``claim``."""
+    with claim.writing() as staging:
         (staging / "profile.json").write_text(json.dumps(report, indent=2) + "\n")
         (staging / "profile.md").write_text(markdown_text(report))
         plot_layers(report, staging / "profile.png")
-    return output
 
 
 def write_json_atomic(data: dict, path: Path) -> None:
