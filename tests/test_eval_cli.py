@@ -201,7 +201,9 @@ def test_i_and_v_sequences_are_reported_apart_and_together(shared_data, tmp_path
     assert summary["i"]["repeatability"] == pytest.approx(pair_repeatability["i_dogman/1-2"])
     assert summary["all"]["repeatability"] == pytest.approx(sum(pair_repeatability.values()) / 6)
     assert pair_repeatability["i_dogman/1-2"] == pytest.approx(pair_repeatability["v_dogman/1-2"])
-    assert [line.split()[1] for line in out.splitlines()[2:]] == ["all", "i", "v"]
+    *table, written = out.splitlines()[2:]
+    assert [line.split()[1] for line in table] == ["all", "i", "v"]
+    assert written.startswith(f"wrote {tmp_path / 'r'}: results.json")  # the last line says where it wrote
 
 
 def test_fp16_artefact_runs_and_reports_its_precision(random_checkpoint_and_artefact, shared_data, tmp_path, capsys):

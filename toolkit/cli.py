@@ -75,6 +75,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: toolkit needs the '{TOOLKIT_EXTRA}' extra (missing: {', '.join(missing)}): "
               f"pip install '{TOOLKIT_EXTRA}'; the VO alone runs as python -m vo_runtime", file=sys.stderr)
         return 2
+    if hasattr(sys.stdout, "reconfigure") and not sys.stdout.isatty():
+        # a log file or a pipe: each line when it is printed, not a buffer's worth at exit
+        sys.stdout.reconfigure(line_buffering=True)
     return run_guarded(build_parser(), argv, (ToolkitError, VORuntimeError))
 
 

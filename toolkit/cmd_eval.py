@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
@@ -151,5 +150,5 @@ def _evaluate(args: argparse.Namespace, config: EvalConfig, detector_config: Det
     print(format_terminal_table(report))
     if claim is not None:
         write_report(claim, report, examples)
-        print(f"report written to {args.output}", file=sys.stderr)
+        print(f"wrote {args.output}: results.json, results.md and the match plots")
     return 0

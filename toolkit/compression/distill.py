@@ -16,10 +16,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
-from tqdm import tqdm
 
 from toolkit.compression.images import load_images
 from toolkit.errors import ToolkitError
+from vo_runtime.progress import progress_bar
 
 
 @dataclass
@@ -95,7 +95,7 @@ def distill(
         pool = torch.from_numpy(load_images(images, config.images, config.size)[0])
     losses: list[float] = []
     tick = time.perf_counter()
-    for step in tqdm(range(config.steps), desc="distil", disable=None if progress else True, leave=False):
+    for step in progress_bar(range(config.steps), desc="distil", unit="step", enabled=progress, leave=False):
         if pairs is not None:
             samples = [pairs[step * config.batch + i] for i in range(config.batch)]
             batch = {key: torch.stack([s[key] for s in samples]) for key in samples[0]}

@@ -7,11 +7,11 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
 
 import numpy as np
-from tqdm import tqdm
 
 from toolkit.evaluation.datasets import ImagePair, load_gray, resize_with_matrix, scale_homography
 from toolkit.evaluation.detectors import Detection, Detector
 from toolkit.evaluation.metrics import PairMetrics, evaluate_detections
+from vo_runtime.progress import progress_bar
 
 CORNER_THRESHOLDS: tuple[int, ...] = (1, 3, 5)
 
@@ -100,7 +100,7 @@ def evaluate_model(detector: Detector, pairs: list[ImagePair], config: EvalConfi
     """Detect on both images of every pair (a progress bar on stderr) and compute each pair's metrics."""
     result = ModelResult(detector.label, detector.kind, dict(detector.settings))
     detections = RecentCache()
-    for index, pair in enumerate(tqdm(pairs, desc=f"eval {detector.label}", unit="pair", leave=False, disable=None)):
+    for index, pair in enumerate(progress_bar(pairs, desc=f"eval {detector.label}", unit="pair", leave=False)):
         image_a, scale_a = images.get(pair.path_a)
         image_b, scale_b = images.get(pair.path_b)
         detection_a: Detection = detections.get(str(pair.path_a), lambda: detector(image_a))

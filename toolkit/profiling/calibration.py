@@ -23,13 +23,13 @@ import torch
 from onnx import TensorProto, helper
 from scipy.optimize import nnls
 from torch import nn
-from tqdm import tqdm
 
 from export.onnx_export import trace_to_onnx
 from models.deform import DeformableConv, set_deform_strategy
 from toolkit.profiling.counts import KINDS, LayerCost, onnx_layer_costs
 from toolkit.profiling.latency import ort_runner, ort_session, summarise, time_interleaved
 from toolkit.profiling.roofline import HardwareModel, design_row
+from vo_runtime.progress import progress_bar
 
 FEATURES = (*KINDS, "layers", "run")
 MIN_INVERSE_EFFICIENCY = 0.01
@@ -240,7 +240,7 @@ def export_micro_layers(height: int, width: int) -> dict[str, onnx.ModelProto]:
     """Every micro-layer as an ONNX graph (opset 19, onnxruntime's DeformConv)."""
     torch.manual_seed(0)
     graphs = {}
-    for name, (module, shape) in tqdm(micro_layers(height, width).items(), desc="micro-layers", leave=False, disable=None):
+    for name, (module, shape) in progress_bar(micro_layers(height, width).items(), desc="micro-layers", unit="layer", leave=False):
         graphs[name] = trace_to_onnx(module.eval(), torch.rand(shape), 19, ("out",))
     return graphs
 

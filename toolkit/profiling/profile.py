@@ -10,7 +10,6 @@ from dataclasses import dataclass
 import onnx
 import torch
 from torch import nn
-from tqdm import tqdm
 
 from export.graphs import DENSE_OUTPUTS, KEYPOINT_OUTPUTS, DenseGraph, KeypointGraph
 from export.onnx_export import export_onnx
@@ -22,6 +21,7 @@ from toolkit.profiling.counts import LayerCost, fvcore_count, onnx_layer_costs, 
 from toolkit.profiling.latency import ort_runner, ort_session, summarise, time_interleaved, torch_runner
 from toolkit.profiling.roofline import HardwareModel, predict_layers
 from toolkit.profiling.sources import ModelSource
+from vo_runtime.progress import progress_bar
 
 FLOPS_CONVENTION = "FLOPs = 2 x MACs (one multiply-accumulate = two floating-point operations)"
 WEIGHTS_NOTE = ("architecture names use random weights: MACs, parameters and latency do not depend on weight values; "
@@ -139,7 +139,7 @@ def build_report(sources: list[ModelSource], profiles: list[TargetProfile], hard
     height, width = size
     models = []
     host_graphs: dict[str, onnx.ModelProto] = {}
-    for source in tqdm(sources, desc="counting and exporting", leave=False, disable=None):
+    for source in progress_bar(sources, desc="counting and exporting", unit="model", leave=False):
         counts = count_model(source, height, width, profiles[0].default_max_keypoints)
         entry = {"name": source.name, "origin": source.origin, **counts, "targets": {}}
         for profile in profiles:
