@@ -5,18 +5,18 @@ Profiles ship inside the package (package data), so an installed, non-editable c
 """
 from __future__ import annotations
 
+import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from toolkit.errors import ToolkitError
+from profiles.errors import ProfileError
+from profiles.fields import MAX_KEYPOINTS, MAX_OPSET, MIN_OPSET, PRECISIONS, Fields, check_finite_numbers
+
+__all__ = ["ProfileError", "TargetProfile", "available_profiles", "load_profile"]
 
 PROFILE_DIR = Path(__file__).resolve().parent
-REQUIRED_FIELDS = (
-    "name", "description", "runtime", "max_opset", "deform_strategy", "precisions",
-    "default_precision", "default_input_size", "default_max_keypoints", "ops.allowed",
-)
 
 
 @dataclass(frozen=True)
@@ -49,52 +49,60 @@ def available_profiles() -> list[str]:
     return sorted(path.stem for path in PROFILE_DIR.glob("*.toml"))
 
 
-def _lookup(table: dict[str, Any], dotted: str) -> Any:
-    node: Any = table
-    for part in dotted.split("."):
-        if not isinstance(node, dict) or part not in node:
-            raise KeyError(dotted)
-        node = node[part]
-    return node
+def _profile_path(name_or_path: str | Path) -> Path:
+    """The TOML file a ``--target`` names: a shipped profile's name, or a path ending in .toml."""
+    if not isinstance(name_or_path, (str, os.PathLike)):
+        raise ProfileError(f"a profile is a name or a .toml path, got {type(name_or_path).__name__}")
+    candidate = Path(name_or_path)
+    if candidate.suffix != ".toml":
+        path = PROFILE_DIR / f"{name_or_path}.toml"
+        if not path.is_file():
+            raise ProfileError(f"unknown target {str(name_or_path)!r} (known: {', '.join(available_profiles())})")
+        return path
+    if candidate.exists() and not candidate.is_file():
+        raise ProfileError(f"profile {candidate} is not a file")
+    if not candidate.is_file():
+        raise ProfileError(f"profile file not found: {candidate}")
+    return candidate
+
+
+def _read_table(path: Path) -> dict[str, Any]:
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise ProfileError(f"profile {path} is not UTF-8 text") from None
+    except RecursionError:
+        raise ProfileError(f"profile {path} nests its tables too deeply to be a profile") from None
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ProfileError(f"{path} is not valid TOML ({exc})") from None
 
 
 def load_profile(name_or_path: str | Path) -> TargetProfile:
-    """Load a shipped profile by name or a TOML file by path; a missing field is named in the error."""
-    candidate = Path(name_or_path)
-    if candidate.suffix == ".toml":
-        path = candidate
-    else:
-        path = PROFILE_DIR / f"{name_or_path}.toml"
-        if not path.is_file():
-            raise ToolkitError(f"unknown target {str(name_or_path)!r} (known: {', '.join(available_profiles())})")
-    if not path.is_file():
-        raise ToolkitError(f"profile file not found: {path}")
-    try:
-        table = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ToolkitError(f"{path} is not valid TOML ({exc})") from None
-    for dotted in REQUIRED_FIELDS:
-        try:
-            _lookup(table, dotted)
-        except KeyError:
-            raise ToolkitError(f"profile {path} is missing the field '{dotted}'") from None
-    if table["deform_strategy"] not in ("native", "portable"):
-        raise ToolkitError(f"profile {path}: deform_strategy must be 'native' or 'portable'")
-    if table["default_precision"] not in table["precisions"]:
-        raise ToolkitError(f"profile {path}: default_precision is not one of its precisions")
-    ops = table["ops"]
+    """Load a shipped profile by name or a TOML file by path. Every field is checked here, once (`profiles.fields`):
+    a missing or invalid one raises `ProfileError` naming it."""
+    path = _profile_path(name_or_path)
+    fields = Fields(_read_table(path), str(path))
+    precisions = fields.texts("precisions", PRECISIONS, empty=False)
+    default_precision = fields.text("default_precision")
+    if default_precision not in precisions:
+        raise ProfileError(f"profile {path}: default_precision is not one of its precisions")
+    hardware = fields.table_of("hardware")
+    check_finite_numbers(hardware, "hardware", str(path))
+    constraints = fields.table_of("ops.constraints")
+    if not all(isinstance(value, str) for value in constraints.values()):
+        raise ProfileError(f"profile {path}: ops.constraints values must be strings")
     return TargetProfile(
-        name=str(table["name"]),
-        description=str(table["description"]),
-        runtime=str(table["runtime"]),
-        max_opset=int(table["max_opset"]),
-        deform_strategy=str(table["deform_strategy"]),
-        precisions=tuple(table["precisions"]),
-        default_precision=str(table["default_precision"]),
-        default_input_size=(int(table["default_input_size"][0]), int(table["default_input_size"][1])),
-        default_max_keypoints=int(table["default_max_keypoints"]),
-        allowed_ops=frozenset(ops["allowed"]),
-        op_constraints=dict(ops.get("constraints", {})),
-        hardware=dict(table.get("hardware", {})),
+        name=fields.text("name"),
+        description=fields.text("description"),
+        runtime=fields.text("runtime"),
+        max_opset=fields.whole("max_opset", MIN_OPSET, MAX_OPSET),
+        deform_strategy=fields.text("deform_strategy", ("native", "portable")),
+        precisions=precisions,
+        default_precision=default_precision,
+        default_input_size=fields.input_size("default_input_size"),
+        default_max_keypoints=fields.whole("default_max_keypoints", 1, MAX_KEYPOINTS),
+        allowed_ops=frozenset(fields.texts("ops.allowed")),
+        op_constraints=dict(constraints),
+        hardware=dict(hardware),
         source=str(path),
     )

@@ -200,14 +200,9 @@ def test_calibrate_then_profile_uses_the_calibration(tmp_path, monkeypatch, caps
 
 
 def _fake_artefact(directory: Path, height: int, width: int) -> Path:
-    from vo_runtime.artefact import ARTEFACT_FORMAT, sha256_file
+    from fake_graphs import constant_keypoint_graph, keypoint_outputs, write_graph_artefact
 
-    directory.mkdir()
-    (directory / "model.onnx").write_bytes(b"not read before the size check")
-    manifest = {"format": ARTEFACT_FORMAT, "target": "x86-cpu", "onnx": {"file": "model.onnx", "sha256": sha256_file(directory / "model.onnx")},
-                "input": {"shape": [1, 1, height, width]}, "model": {"arch": "featurenet", "config": {}}}
-    (directory / "manifest.json").write_text(json.dumps(manifest))
-    return directory
+    return write_graph_artefact(directory, constant_keypoint_graph(height, width, keypoint_outputs()), height, width)
 
 
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys):

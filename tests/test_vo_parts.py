@@ -158,7 +158,7 @@ def test_trajectory_formats():
     np.testing.assert_allclose(values[1:], [1, 2, 3, 0, 0, np.sqrt(0.5), np.sqrt(0.5)], atol=1e-9)
     kitti = format_trajectory(results, "kitti").splitlines()
     np.testing.assert_allclose(np.array(kitti[1].split(), float).reshape(3, 4), pose[:3])
-    with pytest.raises(ValueError, match="unknown trajectory format"):
+    with pytest.raises(VORuntimeError, match="unknown trajectory format"):
         format_trajectory(results, "csv")
 
 

@@ -10,6 +10,7 @@ import argparse
 import importlib
 import sys
 
+from profiles.errors import ProfileError
 from toolkit import __version__
 from toolkit.errors import ToolkitError
 from vo_runtime.clitools import OneLineArgumentParser, run_guarded
@@ -78,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     if hasattr(sys.stdout, "reconfigure") and not sys.stdout.isatty():
         # a log file or a pipe: each line when it is printed, not a buffer's worth at exit
         sys.stdout.reconfigure(line_buffering=True)
-    return run_guarded(build_parser(), argv, (ToolkitError, VORuntimeError))
+    return run_guarded(build_parser(), argv, (ToolkitError, VORuntimeError, ProfileError))
 
 
 if __name__ == "__main__":

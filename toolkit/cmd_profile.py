@@ -150,7 +150,8 @@ def _check_calibration_target(path: Path) -> None:
 def _run_calibration(args: argparse.Namespace, profiles: list[TargetProfile]) -> int:
     from toolkit.profiling.calibration import calibrate
     from toolkit.profiling.profile import target_graph
-    from toolkit.profiling.report import format_table, write_json_atomic
+    from toolkit.profiling.report import format_table
+    from vo_runtime.atomic_file import write_json_atomic
     from toolkit.profiling.roofline import hardware_model
     from toolkit.profiling.sources import ARCHITECTURES, resolve_model
 
@@ -165,7 +166,7 @@ def _run_calibration(args: argparse.Namespace, profiles: list[TargetProfile]) ->
     prior = hardware_model(host)  # the shipped figures: the fit's fallback where the data is silent
     networks = {name: target_graph(resolve_model(name, None), host, height, width).model for name in ARCHITECTURES}
     result = calibrate(networks, height, width, args.threads, args.repeats, args.warmup, prior)
-    write_json_atomic(result.to_json_dict() | {"input_size": [height, width]}, path)
+    write_json_atomic(path, result.to_json_dict() | {"input_size": [height, width]})
     caches = ", ".join(f"{c['bytes'] >> 10} KiB: {c['bandwidth_gbs']:.1f} GB/s" for c in result.cache_levels)
     print(f"host {result.host}, {args.threads} thread(s), {height}x{width}: peak {result.peak_gflops_fp32:.1f} GFLOP/s "
           f"(MatMul), DRAM {result.memory_bandwidth_gbs:.1f} GB/s, caches [{caches}] (Add), overhead {result.overhead_us:.1f} us/layer")

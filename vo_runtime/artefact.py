@@ -19,11 +19,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
 from pathlib import Path
 from typing import Any
 
-from vo_runtime.errors import ArtefactError
+from vo_runtime.errors import ArtefactError, first_line
 
 MANIFEST_NAME = "manifest.json"
 MODEL_NAME = "model.onnx"
@@ -39,18 +40,27 @@ def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
     return digest.hexdigest()
 
 
+def artefact_path(artefact_dir: object) -> Path:
+    """``artefact_dir`` as a Path; `ArtefactError` for anything that is no path (None, a number)."""
+    if not isinstance(artefact_dir, (str, os.PathLike)):
+        raise ArtefactError(f"an artefact is a directory path, got {type(artefact_dir).__name__}")
+    return Path(artefact_dir)
+
+
 def load_manifest(artefact_dir: str | Path) -> dict[str, Any]:
     """Read ``manifest.json`` of an artefact directory; raise `ArtefactError` if absent or malformed."""
-    directory = Path(artefact_dir)
+    directory = artefact_path(artefact_dir)
+    if directory.exists() and not directory.is_dir():
+        raise ArtefactError(f"{directory} is a file, not an artefact directory")
     if not directory.is_dir():
         raise ArtefactError(f"artefact directory not found: {directory}")
     path = directory / MANIFEST_NAME
     if not path.is_file():
         raise ArtefactError(f"{directory} is not an artefact: {MANIFEST_NAME} is missing")
     try:
-        manifest = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ArtefactError(f"{path} is not valid JSON ({exc})") from None
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise ArtefactError(f"{path} is not valid JSON ({first_line(exc)})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != ARTEFACT_FORMAT:
         raise ArtefactError(f"{path} is not an {ARTEFACT_FORMAT} manifest")
     return manifest
@@ -67,6 +77,10 @@ def _check_fields(manifest: dict[str, Any], path: Path) -> None:
     shape = entry.get("shape") if isinstance(entry, dict) else None
     if not (isinstance(shape, list) and len(shape) == 4 and all(isinstance(v, int) and v > 0 for v in shape)):
         raise ArtefactError(f"{path} has no valid input.shape (four positive integers): re-export the artefact")
+    name = onnx_entry.setdefault("file", MODEL_NAME)
+    # A name, never a path: a manifest pointing at ../../x or /x would load a file outside the artefact.
+    if not (isinstance(name, str) and name not in ("", ".", "..") and Path(name).name == name and "\\" not in name):
+        raise ArtefactError(f"{path}: onnx.file must name a file inside the artefact, got {name!r}")
 
 
 def verify_artefact(artefact_dir: str | Path) -> dict[str, Any]:
@@ -74,10 +88,10 @@ def verify_artefact(artefact_dir: str | Path) -> dict[str, Any]:
 
     Returns the manifest. Raises `ArtefactError` naming what is wrong.
     """
-    directory = Path(artefact_dir)
+    directory = artefact_path(artefact_dir)
     manifest = load_manifest(directory)
     _check_fields(manifest, directory / MANIFEST_NAME)
-    model_path = directory / str(manifest["onnx"].get("file", MODEL_NAME))
+    model_path = directory / manifest["onnx"]["file"]
     if not model_path.is_file():
         raise ArtefactError(f"{directory}: {model_path.name} is missing")
     expected = manifest["onnx"]["sha256"]

@@ -3,6 +3,7 @@ file. The folder-sized counterpart, with the output lock and ``--force`` rules, 
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from contextlib import contextmanager
@@ -35,3 +36,15 @@ def write_atomic(path: str | Path, data: bytes) -> None:
 def write_json_atomic(path: str | Path, data: Any) -> None:
     """``data`` as strict JSON (NaN and infinities refused: they are no JSON), written with `write_atomic`."""
     write_atomic(path, (json.dumps(data, indent=2, allow_nan=False) + "\n").encode("utf-8"))
+
+
+def nan_as_null(data: Any) -> Any:
+    """``data`` with every NaN or infinite float replaced by None: for reports where such a value means "not
+    measured" (a loss before the first step), written as JSON null rather than as invalid JSON."""
+    if isinstance(data, dict):
+        return {key: nan_as_null(value) for key, value in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [nan_as_null(value) for value in data]
+    if isinstance(data, float) and not math.isfinite(data):
+        return None
+    return data

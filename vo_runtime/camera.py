@@ -13,15 +13,24 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from vo_runtime.errors import CalibrationError
+from vo_runtime.errors import CalibrationError, first_line
 
 _DIST_LENGTHS = (0, 4, 5, 8, 12, 14)  # the coefficient counts OpenCV accepts
+
+
+def _is_real(value: object) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
+def _is_whole(value: object) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
 
 @dataclass(frozen=True)
@@ -37,17 +46,31 @@ class Camera:
     height: int | None = None
 
     def __post_init__(self) -> None:
+        if not isinstance(self.dist, (tuple, list, np.ndarray)):
+            raise CalibrationError(f"dist must be a sequence of numbers, got {type(self.dist).__name__}")
+        names = ("fx", "fy", "cx", "cy") + tuple(f"dist[{i}]" for i in range(len(self.dist)))
         values = (self.fx, self.fy, self.cx, self.cy, *self.dist)
-        if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
-            raise CalibrationError(f"camera parameters must be finite numbers, got {values}")
+        for name, value in zip(names, values):
+            if not _is_real(value):  # True is no focal length; numpy scalars are fine
+                raise CalibrationError(f"camera parameter {name} must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise CalibrationError(f"camera parameter {name} must be finite, got {value}")
+        # Plain floats from here on: numpy scalars would leak into JSON and change arithmetic types.
+        for name, value in zip(("fx", "fy", "cx", "cy"), values):
+            object.__setattr__(self, name, float(value))
+        object.__setattr__(self, "dist", tuple(float(v) for v in self.dist))
         if self.fx <= 0 or self.fy <= 0:
             raise CalibrationError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
         if len(self.dist) not in _DIST_LENGTHS:
             raise CalibrationError(f"{len(self.dist)} distortion coefficients; OpenCV takes {_DIST_LENGTHS}")
         if (self.width is None) != (self.height is None):
             raise CalibrationError("give both width and height, or neither")
-        if self.width is not None and (int(self.width) <= 0 or int(self.height) <= 0):
-            raise CalibrationError(f"image size must be positive, got {self.width}x{self.height}")
+        if self.width is not None:
+            for name, side in (("width", self.width), ("height", self.height)):
+                if not _is_whole(side) or side <= 0:
+                    raise CalibrationError(f"image {name} must be a positive whole number of pixels, got {side!r}")
+            object.__setattr__(self, "width", int(self.width))
+            object.__setattr__(self, "height", int(self.height))
 
     @property
     def matrix(self) -> np.ndarray:
@@ -122,32 +145,36 @@ def load_json_calib(path: str | Path) -> Camera:
     """Read a JSON calibration (see the module docstring)."""
     try:
         data = json.loads(_read_text(path))
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(f"{path} is not valid JSON ({exc})") from None
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise CalibrationError(f"{path} is not valid JSON ({first_line(exc)})") from None
     if not isinstance(data, dict):
-        raise CalibrationError(f"{path}: expected a JSON object")
+        raise CalibrationError(f"{path} holds a JSON {type(data).__name__}, expected an object with fx, fy, cx, cy")
     missing = [k for k in ("fx", "fy", "cx", "cy") if k not in data]
     if missing:
         raise CalibrationError(f"{path}: missing {', '.join(missing)}")
     try:
-        return Camera(
-            fx=float(data["fx"]), fy=float(data["fy"]), cx=float(data["cx"]), cy=float(data["cy"]),
-            dist=tuple(float(v) for v in data.get("dist", ())),
-            width=None if data.get("width") is None else int(data["width"]),
-            height=None if data.get("height") is None else int(data["height"]),
-        )
-    except (TypeError, ValueError) as exc:
+        # The values as written: Camera refuses true, "500" or a width of 12.7 instead of reading them as numbers.
+        return Camera(fx=data["fx"], fy=data["fy"], cx=data["cx"], cy=data["cy"], dist=data.get("dist", ()),
+                      width=data.get("width"), height=data.get("height"))
+    except CalibrationError as exc:
         raise CalibrationError(f"{path}: {exc}") from None
 
 
 def load_camera(path: str | Path, camera: int = 0) -> Camera:
     """Load a calibration file, choosing the reader by content: JSON object, else KITTI ``calib.txt``."""
     text = _read_text(path)
-    return load_json_calib(path) if text.lstrip().startswith("{") else load_kitti_calib(path, camera)
+    is_json = text.lstrip()[:1] in ("{", "[")  # an array is JSON too: say so rather than read it as calib.txt
+    return load_json_calib(path) if is_json else load_kitti_calib(path, camera)
 
 
 def _read_text(path: str | Path) -> str:
+    if not isinstance(path, (str, os.PathLike)):
+        raise CalibrationError(f"a calibration is a file path, got {type(path).__name__}")
+    if Path(path).is_dir():
+        raise CalibrationError(f"calibration {path} is a folder, not a file")
     try:
-        return Path(path).read_text()
-    except (OSError, UnicodeDecodeError) as exc:
+        return Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise CalibrationError(f"calibration {path} is not UTF-8 text") from None
+    except OSError as exc:
         raise CalibrationError(f"cannot read calibration {path} ({exc.__class__.__name__})") from None

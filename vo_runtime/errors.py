@@ -20,6 +20,14 @@ class FrameError(VORuntimeError):
     """A frame cannot be used: undecodable, empty, of an unusable shape or dtype, or holding NaN/inf."""
 
 
+class TimestampError(VORuntimeError):
+    """A timestamp is not a finite number, or does not come after the previous frame's."""
+
+
+class ConcurrentUseError(VORuntimeError):
+    """One VO instance was entered from a second thread while another was inside it."""
+
+
 def first_line(exc: BaseException, limit: int | None = MESSAGE_LIMIT) -> str:
     """The first non-blank line of ``str(exc)``, shortened to ``limit`` (None: never); the class name when the
     text is empty.

@@ -40,7 +40,7 @@ import numpy as np
 from vo_runtime.background import Background
 from vo_runtime.camera import Camera
 from vo_runtime.config import Extraction, VOConfig, VOResult
-from vo_runtime.errors import CalibrationError, FrameError
+from vo_runtime.errors import CalibrationError, FrameError, VORuntimeError
 from vo_runtime.features import FeatureExtractor, Features, check_frame, detector_pixel, to_gray_u8
 from vo_runtime.geometry import camera_centre, invert_pose, per_frame_motion
 from vo_runtime.initialiser import Initialiser
@@ -48,6 +48,8 @@ from vo_runtime.localmap import Keyframe, LocalMap
 from vo_runtime.mapping import cull_landmarks, local_bundle_adjustment, refresh_landmarks, triangulate_new_landmarks
 from vo_runtime.refine import PatchAligner, align_rows, align_to_map
 from vo_runtime.relocalise import relocalise
+from vo_runtime.single_caller import SingleCaller, single_caller
+from vo_runtime.timestamps import checked_timestamp
 from vo_runtime.tracking import RELOCALISATION, FrameData, TrackingSettings, guided_pose, refit_pose, track_frame
 
 INITIALISING, TRACKING, RELOCALISED, REINITIALISED, LOST = (
@@ -67,12 +69,20 @@ class MonoVO:
     """
 
     def __init__(self, extractor: Callable[[np.ndarray], Features], camera: Camera, config: VOConfig | None = None):
+        if not callable(extractor):
+            raise VORuntimeError(f"the extractor must be callable (image -> Features), got {type(extractor).__name__}")
+        if not isinstance(camera, Camera):
+            raise CalibrationError(f"camera must be a vo_runtime.Camera (see load_camera), got {type(camera).__name__}")
+        if config is not None and not isinstance(config, VOConfig):
+            raise VORuntimeError(f"config must be a VOConfig, got {type(config).__name__}")
         self.extractor = extractor
         self.camera = camera
         self.config = config or VOConfig()
         self._background = Background()
+        self._caller = SingleCaller(type(self).__name__)  # one thread at a time in the state-changing calls
         self.reset()
 
+    @single_caller
     def reset(self) -> None:
         """Forget the map and the trajectory; the next frame becomes the origin."""
         self._background.wait()
@@ -101,6 +111,7 @@ class MonoVO:
         return self._initialiser.model
 
     # ------------------------------------------------------------------ public
+    @single_caller
     def process(self, image: np.ndarray | None, timestamp: float | None = None) -> VOResult:
         """Track one frame (HxW gray or HxWx3 BGR) and return its pose and statistics.
 
@@ -148,8 +159,10 @@ class MonoVO:
             return Extraction(image, None, str(exc))
         return Extraction(image, features, seconds=time.perf_counter() - start)
 
+    @single_caller
     def process_extraction(self, extraction: Extraction, timestamp: float | None = None) -> VOResult:
         """Track a frame whose features `extract` found (see `process`)."""
+        timestamp = self._checked_timestamp(timestamp)
         image, features = extraction.image, extraction.features
         if not extraction.usable:
             return self.skip(extraction.problem, timestamp)
@@ -180,9 +193,11 @@ class MonoVO:
         thread; call it before reading the final trajectory. A later `process` carries on as before."""
         self._background.close()
 
+    @single_caller
     def skip(self, problem: str, timestamp: float | None = None) -> VOResult:
         """Record a frame that could not be used (status ``skipped``, pose held) and say why; the map and the
         tracks are untouched, so the next good frame is matched to the last good one."""
+        timestamp = self._checked_timestamp(timestamp)
         self._background.wait()
         index = len(self.results)
         self._poses_cw.append(self._poses_cw[-1].copy() if self._poses_cw else np.eye(4))
@@ -191,6 +206,10 @@ class MonoVO:
                           track_ms=0.0, problem=problem)
         self.results.append(result)
         return result
+
+    def _checked_timestamp(self, timestamp: float | None) -> float | None:
+        """`TimestampError` (nothing changed) unless the stamp is None or finite and after the last frame's."""
+        return checked_timestamp(timestamp, self.results[-1].timestamp if self.results else None)
 
     def _set_pixel_unit(self, pixel: float) -> None:
         """Pixel thresholds are in detector pixels (``pixel`` frame pixels each); with patch alignment the
@@ -397,6 +416,11 @@ class VisualOdometry(MonoVO):
 
     ``artefact`` is an artefact directory (run by `FeatureExtractor` with ``threads`` onnxruntime threads) or
     any callable image -> `Features` (e.g. `OrbExtractor`).
+
+    Threads: one instance tracks one stream, from one thread at a time. A call that enters `track` (or
+    `process`, `stream`, `reset`) while another thread is inside raises `ConcurrentUseError` and changes
+    nothing; use one instance per camera thread, or serialise the calls. Timestamps, when given, are finite
+    and increase from frame to frame (`TimestampError` otherwise, nothing changed).
     """
 
     def __init__(self, artefact: str | Path | Callable[[np.ndarray], Features], camera: Camera,

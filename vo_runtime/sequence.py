@@ -7,7 +7,8 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from vo_runtime.errors import FrameError, VORuntimeError
+from vo_runtime.errors import FrameError, TimestampError, VORuntimeError
+from vo_runtime.timestamps import check_timestamps
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff")
 
@@ -24,20 +25,25 @@ def list_frames(folder: str | Path) -> list[Path]:
 
 
 def frame_timestamps(frames: list[Path], times_file: str | Path | None = None) -> list[float]:
-    """One timestamp per frame: from ``times_file`` (one number a line, KITTI ``times.txt``), else from
-    file names that are numbers (TUM), else the frame index."""
+    """One timestamp per frame: from ``times_file`` (one number a line, KITTI ``times.txt``; finite and
+    increasing, else `TimestampError`), else from file names that are increasing numbers (TUM), else the
+    frame index."""
     if times_file is not None:
         try:
-            times = [float(line.split()[0]) for line in Path(times_file).read_text().splitlines() if line.strip()]
-        except (OSError, ValueError, IndexError) as exc:
+            text = Path(times_file).read_text(encoding="utf-8")
+            times = [float(line.split()[0]) for line in text.splitlines() if line.strip()]
+        except (OSError, ValueError, IndexError) as exc:  # UnicodeDecodeError is a ValueError
             raise VORuntimeError(f"cannot read timestamps from {times_file} ({exc.__class__.__name__})") from None
         if len(times) < len(frames):
             raise VORuntimeError(f"{times_file} has {len(times)} timestamps for {len(frames)} frames")
+        check_timestamps(times[: len(frames)], str(times_file))
         return times[: len(frames)]
     try:
-        return [float(p.stem) for p in frames]
-    except ValueError:
+        stamps = [float(p.stem) for p in frames]
+        check_timestamps(stamps, "frame names")
+    except (ValueError, TimestampError):  # names that are no increasing times (0.png, 1.png, 10.png, 2.png)
         return [float(i) for i in range(len(frames))]
+    return stamps
 
 
 def read_frame(path: str | Path) -> np.ndarray:

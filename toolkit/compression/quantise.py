@@ -23,6 +23,7 @@ import numpy as np
 import onnx
 
 from export.artefact import MIN_IDENTICAL
+from export.artefact_graph import load_artefact_graph
 from export.half import to_fp16
 from export.checks import check_against_profile, require_non_negative_gathers
 from export.graph_order import topologically_sorted
@@ -37,7 +38,7 @@ from toolkit.compression.report import interleaved_median_ms, ort_drift, ort_ses
 from toolkit.compression.sensitivity import fixed_kernel_convs, head_output_convs, layer_sensitivity, single_channel_convs
 from toolkit.atomic import OutputClaim, OutputKind, claim_output_dir
 from toolkit.errors import ToolkitError
-from vo_runtime.artefact import MANIFEST_NAME, MODEL_NAME, sha256_file, verify_artefact
+from vo_runtime.artefact import MANIFEST_NAME, MODEL_NAME, sha256_file
 
 MODES = ("int8", "fp16")
 # Gemm is the descriptor projection at the keypoints. The default list also quantises the sampling
@@ -131,7 +132,7 @@ def quantise_artefact(options: QuantiseOptions, log=print) -> Path:
     if options.mode not in MODES:
         raise ToolkitError(f"--mode must be one of {', '.join(MODES)}, got {options.mode!r}")
     source = Path(options.artefact)
-    manifest = verify_artefact(source)  # ArtefactError (exit 2) when missing or the checksum fails
+    manifest, model = load_artefact_graph(source)  # ArtefactError (exit 2): missing, checksum, or a bad graph
     if not isinstance(manifest.get("target"), str):
         raise ToolkitError(f"{source}/manifest.json names no target profile: re-export the artefact")
     profile = load_profile(manifest["target"])
@@ -154,14 +155,13 @@ def quantise_artefact(options: QuantiseOptions, log=print) -> Path:
     if output.resolve() == source.resolve():
         raise ToolkitError("the quantised artefact needs its own directory (-o must differ from --artefact)")
     with claim_output_dir(output, QUANTISED_ARTEFACT, options.force, [source, options.calibration]) as claim:
-        _quantise_into(claim, options, source, manifest, profile, log)
+        _quantise_into(claim, options, source, manifest, model, profile, log)
     return output
 
 
-def _quantise_into(claim: OutputClaim, options: QuantiseOptions, source: Path, manifest: dict,
+def _quantise_into(claim: OutputClaim, options: QuantiseOptions, source: Path, manifest: dict, model: onnx.ModelProto,
                    profile: TargetProfile, log) -> None:
     """Quantise, check and measure, then write the new artefact through ``claim`` (held by the caller)."""
-    model = onnx.load(str(source / manifest["onnx"]["file"]))
     _name_unnamed_nodes(model)
     height, width = manifest["input"]["shape"][2:]
 

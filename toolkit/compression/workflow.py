@@ -17,7 +17,7 @@ from toolkit.compression.prune import (count_macs, count_parameters, prune_chann
 from toolkit.compression.report import Drift, interleaved_median_ms, torch_drift
 from toolkit.atomic import FilesClaim, check_output_path, claim_output_files
 from toolkit.errors import ToolkitError
-from vo_runtime.atomic_file import write_json_atomic
+from vo_runtime.atomic_file import nan_as_null, write_json_atomic
 
 MEASURE_IMAGES = 8  # drift images; spread over the image folder
 MAX_BATCH = 64  # images per distillation step; far more runs out of memory at 240x320 on a CPU
@@ -214,7 +214,7 @@ def _prune_into(claim: FilesClaim, options: PruneOptions, checkpoint: Path, teac
                 "pruning": json.loads(json.dumps(report.to_dict()))}
     claim.check_unchanged()
     save_checkpoint(student, output, metadata)
-    write_json_atomic(report_path(output), report.to_dict())
+    write_json_atomic(report_path(output), nan_as_null(report.to_dict()))  # NaN: not measured (--steps 0)
     return report
 
 

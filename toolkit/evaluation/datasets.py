@@ -148,9 +148,19 @@ def read_registered_pairs(root: str | Path, first: str = "low", second: str = "h
         if path_a is None or path_b is None:
             raise ToolkitError(f"image {stem} is in {folder_a.name}/ but not in {folder_b.name}/")
         h_file = root / homography_dir / f"{stem}.txt"
-        homography = parse_homography_file(h_file) if h_file.exists() else np.eye(3)
+        homography = parse_homography_file(h_file) if h_file.exists() else identity_for(path_a, path_b, h_file)
         pairs.append(ImagePair(stem, "pairs", path_a, path_b, homography))
     return pairs
+
+
+def identity_for(path_a: Path, path_b: Path, h_file: Path) -> np.ndarray:
+    """The identity homography of a pair without an H file, which only registers two images of one size
+    (metrics against the identity for differently sized images would be numbers about nothing)."""
+    size_a, size_b = load_gray(path_a).shape, load_gray(path_b).shape
+    if size_a != size_b:
+        raise ToolkitError(f"{path_a} is {size_a[1]}x{size_a[0]} but {path_b} is {size_b[1]}x{size_b[0]}, and there "
+                           f"is no {h_file} to register them: the identity fits only images of one size")
+    return np.eye(3)
 
 
 def load_gray(path: str | Path) -> np.ndarray:

@@ -2,8 +2,6 @@
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from contextlib import AbstractContextManager
 from pathlib import Path
 
@@ -154,20 +152,6 @@ def claim_report_dir(output: Path, force: bool, inputs: list[Path]) -> AbstractC
 def write_outputs(report: dict, claim: OutputClaim) -> None:
     """Write profile.json, profile.md and profile.png via a staging directory swapped in by ``claim``."""
     with claim.writing() as staging:
-        (staging / "profile.json").write_text(json.dumps(report, indent=2) + "\n")
+        (staging / "profile.json").write_text(json.dumps(report, indent=2, allow_nan=False) + "\n")  # strict JSON
         (staging / "profile.md").write_text(markdown_text(report))
         plot_layers(report, staging / "profile.png")
-
-
-def write_json_atomic(data: dict, path: Path) -> None:
-    """Write ``data`` as JSON to ``path`` through a temporary sibling file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
-    try:
-        with os.fdopen(handle, "w") as stream:
-            json.dump(data, stream, indent=2)
-            stream.write("\n")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)

@@ -16,6 +16,8 @@ cost nothing. The model is linear in 1 / efficiency_k and in the overhead, which
 """
 from __future__ import annotations
 
+import math
+
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -86,6 +88,19 @@ def _field(hardware: dict[str, Any], name: str, source: str) -> Any:
     return hardware[name]
 
 
+def _figure(hardware: dict[str, Any], name: str, source: str, zero: bool = False, table: str = "hardware") -> float:
+    """A hardware figure: a finite number above zero (or at least zero, for overheads); a peak of 0, "fast"
+    or NaN would divide by zero, crash or end as NaN in the report."""
+    if name not in hardware:
+        raise ToolkitError(f"profile {source} is missing the field '{table}.{name}'")
+    value = hardware[name]
+    low_ok = value >= 0 if zero else value > 0
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or not low_ok:
+        raise ToolkitError(f"profile {source}: {table}.{name} must be a {'non-negative' if zero else 'positive'} "
+                           f"finite number, got {value!r}")
+    return float(value)
+
+
 def hardware_model(
     profile: TargetProfile, precision: str | None = None, power_mode: str | None = None, calibration: dict | None = None
 ) -> HardwareModel:
@@ -114,34 +129,33 @@ def hardware_model(
     else:
         power_mode = ""
         peak_key = f"peak_gflops_{precision}"
+    if not isinstance(hardware["efficiency"], dict):
+        raise ToolkitError(f"profile {profile.source}: hardware.efficiency must be a table")
     efficiency = dict(hardware["efficiency"])
     for kind in KINDS:
-        if kind not in efficiency:
-            raise ToolkitError(f"profile {profile.source} is missing the field 'hardware.efficiency.{kind}'")
-        if not float(efficiency[kind]) > 0:
-            raise ToolkitError(f"profile {profile.source}: hardware.efficiency.{kind} must be positive")
+        efficiency[kind] = _figure(efficiency, kind, profile.source, table="hardware.efficiency")
     return HardwareModel(
         target=profile.name,
         precision=precision,
         power_mode=power_mode,
-        peak_gflops=float(_field(hardware, peak_key, profile.source)),
-        bandwidth_gbs=float(hardware["memory_bandwidth_gbs"]),
-        efficiency={kind: float(efficiency[kind]) for kind in KINDS},
-        overhead_us=float(hardware["overhead_us"]),
+        peak_gflops=_figure(hardware, peak_key, profile.source),
+        bandwidth_gbs=_figure(hardware, "memory_bandwidth_gbs", profile.source),
+        efficiency={kind: efficiency[kind] for kind in KINDS},
+        overhead_us=_figure(hardware, "overhead_us", profile.source, zero=True),
         fused_activations=tuple(hardware["fused_activations"]),
         figures_from=figures_from,
         sources=[str(s) for s in hardware.get("sources", [])],
         cache_levels=_cache_levels(hardware.get("cache_levels", []), profile.source),
-        run_overhead_us=float(hardware.get("run_overhead_us", 0.0)),
+        run_overhead_us=_figure({"run_overhead_us": 0.0, **hardware}, "run_overhead_us", profile.source, zero=True),
     )
 
 
 def _cache_levels(levels: list, source: str) -> list[tuple[int, float]]:
-    try:
-        parsed = sorted((int(level["bytes"]), float(level["bandwidth_gbs"])) for level in levels)
-    except (KeyError, TypeError, ValueError):
-        raise ToolkitError(f"profile {source}: every hardware.cache_levels entry needs 'bytes' and 'bandwidth_gbs'") from None
-    return parsed
+    if not isinstance(levels, list) or not all(isinstance(level, dict) for level in levels):
+        raise ToolkitError(f"profile {source}: hardware.cache_levels must be a list of tables")
+    table = "hardware.cache_levels[]"
+    return sorted((int(_figure(level, "bytes", source, table=table)), _figure(level, "bandwidth_gbs", source, table=table))
+                  for level in levels)
 
 
 def is_fused(layer: LayerCost, fused_activations: tuple[str, ...]) -> bool:

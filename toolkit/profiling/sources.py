@@ -16,8 +16,8 @@ from models.checkpoint import build_model, load_checkpoint
 from models.featurenet import FeatureNet, FeatureNetConfig
 from models.superpoint import SuperPointNet
 from toolkit.errors import ToolkitError
-from vo_runtime.artefact import MODEL_NAME, verify_artefact
-from vo_runtime.errors import VORuntimeError, first_line
+from export.artefact_graph import load_artefact_graph
+from vo_runtime.errors import first_line
 
 ARCHITECTURES = ("featurenet", "featurenet-relu", "superpoint")
 
@@ -37,10 +37,11 @@ class ModelSource:
     nms_radius: int = 4
     threshold: float = 0.005
     border: int = 4
+    graph: onnx.ModelProto | None = None  # an artefact's graph, loaded and checked once (`load_artefact_graph`)
 
     def artefact_model(self) -> onnx.ModelProto:
-        assert self.artefact_dir is not None
-        return onnx.load(str(self.artefact_dir / MODEL_NAME))
+        assert self.graph is not None
+        return self.graph
 
 
 def architecture(name: str) -> nn.Module:
@@ -76,10 +77,7 @@ def resolve_model(spec: str, requested_size: tuple[int, int] | None) -> ModelSou
 
 
 def _from_artefact(directory: Path, requested_size: tuple[int, int] | None) -> ModelSource:
-    try:
-        manifest = verify_artefact(directory)
-    except VORuntimeError as exc:
-        raise ToolkitError(str(exc)) from None
+    manifest, graph = load_artefact_graph(directory)  # ArtefactError: one line, exit 2
     shape = manifest["input"]["shape"]
     size = (int(shape[2]), int(shape[3]))
     if requested_size is not None and size != tuple(requested_size):
@@ -107,4 +105,5 @@ def _from_artefact(directory: Path, requested_size: tuple[int, int] | None) -> M
         nms_radius=int(post.get("nms_radius", 4)),
         threshold=float(post.get("detection_threshold", 0.005)),
         border=int(post.get("border", 4)),
+        graph=graph,
     )
