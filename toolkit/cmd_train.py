@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+from contextlib import nullcontext
 from pathlib import Path
 
 from toolkit.atomic import locked_output_dir
@@ -28,7 +30,10 @@ def run(args: argparse.Namespace) -> int:
     if args.resume and args.config:
         raise ToolkitError("--config cannot be combined with --resume: a resumed run keeps its own config")
     run_dir = Path(args.out)
-    with locked_output_dir(run_dir):  # one training per run folder at a time, from the first check to the end
+    # One training per run folder at a time, from the first check to the end. Under torchrun every process runs
+    # this command for the same folder: the first (RANK 0, which writes it) holds the lock for them all.
+    lock = locked_output_dir(run_dir) if os.environ.get("RANK", "0") == "0" else nullcontext()
+    with lock:
         return _train_into(args, run_dir)
 
 
