@@ -137,7 +137,9 @@ class DistillPairs(Dataset):
             raise ToolkitError("no labelled images to train on")
         if not store.descriptor_stride:
             raise ToolkitError(
-                f"the distill recipe needs teacher descriptors: {store.root} was labelled without --descriptors"
+                f"the distill recipe (the default) needs teacher descriptors: {store.root} was labelled without "
+                "--descriptors; label with an ALIKE teacher and --descriptors (toolkit label --teacher alike-n "
+                "--descriptors ...), or train the paper recipe on these labels (--config with recipe = \"paper\")"
             )
         self.images, self.store, self.scales = images, store, scales
         self.homography, self.augment, self.seed = homography, augment, seed
