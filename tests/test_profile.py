@@ -134,6 +134,33 @@ def test_fit_recovers_known_factors_on_synthetic_data():
     assert fit_factors(rows, seconds, prior).inverse_efficiency["deform"] == pytest.approx(2.0, rel=1e-3)
 
 
+def test_micro_layers_time_what_the_x86_graphs_run():
+    # The x86 graphs trace ELU as max(x, exp(clip(x, max=0)) - 1); timing the Elu op instead fitted the wrong cost.
+    from toolkit.profiling.calibration import TINY_OPS, export_micro_layers
+
+    graphs = export_micro_layers(32, 48)
+    ops = {name: {node.op_type for node in graph.graph.node} for name, graph in graphs.items()}
+    assert not any("Elu" in kinds for kinds in ops.values())
+    assert {"Clip", "Exp", "Sub", "Max"} <= ops["(pointwise + elu) 16 @H x3"]
+    tiny = graphs[f"{2 * TINY_OPS} tiny elementwise (overhead)"]  # pins the per-node overhead
+    assert len([n for n in tiny.graph.node if n.op_type in ("Mul", "Add")]) == 2 * TINY_OPS
+
+
+def test_a_network_the_fit_cannot_predict_is_named_with_its_terms():
+    from toolkit.profiling.calibration import leave_one_out_note, unpredicted_terms
+
+    row = {k: 0.0 for k in KINDS} | {"elementwise": 2e-3, "conv": 1e-3, "layers": 10.0, "run": 1.0}
+    with_it = FitResult({k: 1.0 for k in KINDS}, 0.0, 1e-4)
+    without = FitResult({k: 1.0 for k in KINDS} | {"elementwise": 0.4}, 0.0, 1e-4)
+    assert unpredicted_terms(with_it, without, row) == ["elementwise 2.00 -> 0.80 ms"]
+    entry = {"network": "featurenet", "measured_ms": 3.2, "relative_error": -0.34, "in_sample_predicted_ms": 3.1,
+             "unpredicted_terms": ["elementwise 2.00 -> 0.80 ms"]}
+    note = leave_one_out_note(entry)
+    assert note.startswith("note: featurenet is predicted -34% off from the other graphs (limit 25%): the terms it "
+                           "cannot predict are elementwise 2.00 -> 0.80 ms")
+    assert leave_one_out_note(entry | {"relative_error": 0.2}) is None
+
+
 def test_design_row_is_the_prediction_with_unit_efficiency():
     torch.manual_seed(0)
     _, _, layers = _keypoint_graph(FeatureNet(), 19, "native")
