@@ -98,3 +98,43 @@ def test_the_full_size_forms_parse_and_chain(shared_data: Path) -> None:
             if option(argv, name):  # what a line reads was written by a line before it
                 assert any(option(argv, name).startswith(place) for place in written), f"{command}: nothing writes {name}"
         written.update(value for value in (option(argv, "--out"), option(argv, "-o")) if value)
+
+
+def _words(text: str) -> str:
+    return " ".join(text.split())
+
+
+def test_the_jetson_steps_quote_the_artefact_readme_and_the_default_models_figures() -> None:
+    import json
+
+    from export.readme import artefact_readme
+    from profiles import load_profile
+
+    readme = _words((REPO / "README.md").read_text())
+    manifest = json.loads((REPO / "vo_runtime" / "default_artefact" / "manifest.json").read_text())
+    manifest.update(precision="fp16", precision_applied="tensorrt-build-flag", target="tx2")
+    manifest["onnx"]["opset"] = 13
+    trtexec = next(line for line in artefact_readme(manifest, load_profile("tx2")).splitlines() if "trtexec --onnx" in line)
+    assert _words(trtexec) in readme  # one trtexec line, the artefact's own
+    # export --target tx2 ships the ELU weights: the section quotes the ELU prediction first
+    assert "7.35 ms (MAXN) / 7.72 ms (MAXQ) for the ELU network that `export --target tx2` ships" in readme
+
+
+def test_the_readme_counts_are_the_models_counts() -> None:
+    from toolkit.profiling.profile import count_model
+    from toolkit.profiling.sources import resolve_model
+
+    readme = _words((REPO / "README.md").read_text())
+    counts = {name: count_model(resolve_model(name, None), 240, 320, 1024)
+              for name in ("featurenet", "default", "default-relu", "superpoint")}
+    assert f"{counts['featurenet']['parameters'] / 1e6:.3f} M parameters, {counts['featurenet']['macs'] / 1e9:.3f} GMACs" in readme
+    assert (f"{counts['default']['parameters'] / 1e6:.3f} M and {counts['default']['macs'] / 1e9:.3f} GMACs (ELU) / "
+            f"{counts['default-relu']['macs'] / 1e9:.3f} (ReLU)") in readme
+    assert f"{counts['superpoint']['parameters'] / 1e6:.2f} M, {counts['superpoint']['macs'] / 1e9:.2f} GMACs" in readme
+
+
+def test_eval_help_and_docs_name_the_same_default_models() -> None:
+    from toolkit.cmd_eval import MODEL_HELP
+
+    assert "(default: default orb sift)" in MODEL_HELP
+    assert "default `default orb sift`" in (REPO / "docs" / "evaluation.md").read_text()
