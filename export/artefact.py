@@ -26,11 +26,11 @@ from models.deform import set_deform_strategy
 from models.keypoints import is_score_window
 from models.featurenet import set_elu_form
 from profiles import TargetProfile, load_profile
-from toolkit import __version__
-from toolkit.errors import ToolkitError
-from toolkit.sizes import MAX_SIDE, MIN_SIDE
+from export.errors import ExportError
+from profiles.fields import MAX_SIDE, MIN_SIDE
 from vo_runtime.artefact import ARTEFACT_FORMAT, MANIFEST_NAME, MODEL_NAME, sha256_file
 from vo_runtime.outputs import OutputClaim, OutputKind, claim_output
+from vo_runtime.version import __version__
 
 # FP16 weights move scores by ~1e-3, enough to reorder near-tied keypoints at the top-K cut.
 MIN_IDENTICAL = {"fp32": 0.99, "fp16": 0.90}
@@ -60,14 +60,14 @@ EXPORTED_ARTEFACT = OutputKind("exported-artefact", "an artefact written by tool
 def _resolve(options: ExportOptions, profile: TargetProfile) -> tuple[tuple[int, int], str, int]:
     size = options.input_size or profile.default_input_size
     if size[0] % 8 or size[1] % 8 or min(size) < MIN_SIDE or max(size) > MAX_SIDE:
-        raise ToolkitError(f"input size {size[0]}x{size[1]}: each side must be between {MIN_SIDE} and {MAX_SIDE} "
+        raise ExportError(f"input size {size[0]}x{size[1]}: each side must be between {MIN_SIDE} and {MAX_SIDE} "
                            "and divisible by 8")
     precision = options.precision or profile.default_precision
     if precision not in profile.precisions:
-        raise ToolkitError(f"precision {precision} is not available for {profile.name} (choose from {', '.join(profile.precisions)})")
+        raise ExportError(f"precision {precision} is not available for {profile.name} (choose from {', '.join(profile.precisions)})")
     keypoints = profile.default_max_keypoints if options.max_keypoints is None else options.max_keypoints
     if not 1 <= keypoints <= size[0] * size[1] // 4:
-        raise ToolkitError(f"--max-keypoints must be between 1 and {size[0] * size[1] // 4} at {size[0]}x{size[1]}, got {keypoints}")
+        raise ExportError(f"--max-keypoints must be between 1 and {size[0] * size[1] // 4} at {size[0]}x{size[1]}, got {keypoints}")
     _check_postprocess(options, size)
     return size, precision, keypoints
 
@@ -75,24 +75,24 @@ def _resolve(options: ExportOptions, profile: TargetProfile) -> tuple[tuple[int,
 def _check_postprocess(options: ExportOptions, size: tuple[int, int]) -> None:
     """Refuse settings that leave no keypoints or no valid graph (a NaN threshold also made invalid JSON)."""
     if not (math.isfinite(options.threshold) and 0.0 <= options.threshold < 1.0):
-        raise ToolkitError(f"--threshold is a keypoint probability: it must be in [0, 1), got {options.threshold}")
+        raise ExportError(f"--threshold is a keypoint probability: it must be in [0, 1), got {options.threshold}")
     if not 0 <= options.border < min(size) // 4:
-        raise ToolkitError(f"--border must be between 0 and {min(size) // 4 - 1} px at {size[0]}x{size[1]}, got {options.border}")
+        raise ExportError(f"--border must be between 0 and {min(size) // 4 - 1} px at {size[0]}x{size[1]}, got {options.border}")
     if not 0 <= options.nms_radius < min(size) // 4:
-        raise ToolkitError(f"--nms-radius must be between 0 and {min(size) // 4 - 1} px at {size[0]}x{size[1]}, "
+        raise ExportError(f"--nms-radius must be between 0 and {min(size) // 4 - 1} px at {size[0]}x{size[1]}, "
                            f"got {options.nms_radius}")
     if not (is_score_window(options.score_window) and options.score_window < min(size) // 4):
-        raise ToolkitError(f"--score-window must be an odd number of pixels between 1 and {min(size) // 4 - 1}, "
+        raise ExportError(f"--score-window must be an odd number of pixels between 1 and {min(size) // 4 - 1}, "
                            f"got {options.score_window}")
 
 
 def export_artefact(options: ExportOptions, log=print) -> Path:
-    """Export, verify and write an artefact; returns its directory. Raises `ToolkitError` on any failure."""
+    """Export, verify and write an artefact; returns its directory. Raises `ExportError` on any failure."""
     profile = load_profile(options.target)
     (height, width), precision, max_keypoints = _resolve(options, profile)
     output = Path(options.output)
     inputs = [options.checkpoint, options.parity_images]
-    with claim_output(output, EXPORTED_ARTEFACT, options.force, inputs, ToolkitError) as claim:
+    with claim_output(output, EXPORTED_ARTEFACT, options.force, inputs, ExportError) as claim:
         _export_into(claim, options, profile, (height, width), precision, max_keypoints, log)
     return output
 
@@ -134,10 +134,10 @@ def _export_into(claim: OutputClaim, options: ExportOptions, profile: TargetProf
     required = MIN_IDENTICAL["fp16" if onnx_fp16 else "fp32"]
     compared = sum(parity.num_valid_torch)
     if compared < MIN_PARITY_KEYPOINTS:
-        raise ToolkitError(f"parity failed: PyTorch found only {compared} keypoints on {len(paths)} parity images "
+        raise ExportError(f"parity failed: PyTorch found only {compared} keypoints on {len(paths)} parity images "
                            f"(need {MIN_PARITY_KEYPOINTS} to compare); use images with more texture or a lower --threshold")
     if parity.keypoints_identical < required:
-        raise ToolkitError(
+        raise ExportError(
             f"parity failed: only {parity.keypoints_identical:.1%} of keypoints identical to PyTorch (need {required:.0%})"
         )
 

@@ -6,7 +6,7 @@ import onnx
 
 from export.onnx_export import model_opset
 from profiles import TargetProfile
-from toolkit.errors import ToolkitError
+from export.errors import ExportError
 
 GATHER_OPS = ("Gather", "GatherElements")
 
@@ -18,27 +18,27 @@ def _constant_names(model: onnx.ModelProto) -> set[str]:
 
 
 def check_against_profile(model: onnx.ModelProto, profile: TargetProfile) -> None:
-    """Raise `ToolkitError` naming the offending op, opset or shape; return None when the graph fits."""
+    """Raise `ExportError` naming the offending op, opset or shape; return None when the graph fits."""
     opset = model_opset(model)
     if opset > profile.max_opset:
-        raise ToolkitError(f"graph uses opset {opset}; target {profile.name} reads opset <= {profile.max_opset}")
+        raise ExportError(f"graph uses opset {opset}; target {profile.name} reads opset <= {profile.max_opset}")
     for value in model.graph.input:
         dims = value.type.tensor_type.shape.dim
         if any(not dim.HasField("dim_value") or dim.dim_value <= 0 for dim in dims):
-            raise ToolkitError(f"input {value.name!r} has a dynamic dimension; target {profile.name} needs fixed shapes")
+            raise ExportError(f"input {value.name!r} has a dynamic dimension; target {profile.name} needs fixed shapes")
     constants = _constant_names(model)
     for node in model.graph.node:
         label = f"{node.op_type} (node {node.name or '?'})"
         if node.domain not in ("", "ai.onnx"):
-            raise ToolkitError(f"op {node.domain}::{node.op_type} is not a standard ONNX op; target {profile.name} cannot run it")
+            raise ExportError(f"op {node.domain}::{node.op_type} is not a standard ONNX op; target {profile.name} cannot run it")
         if profile.allowed_ops and node.op_type not in profile.allowed_ops:
-            raise ToolkitError(f"op {label} is not supported by target {profile.name} ({profile.runtime})")
+            raise ExportError(f"op {label} is not supported by target {profile.name} ({profile.runtime})")
         if node.op_type == "TopK" and node.input[1] not in constants:
-            raise ToolkitError(f"op {label} has a data-dependent K; target {profile.name} needs a constant K")
+            raise ExportError(f"op {label} has a data-dependent K; target {profile.name} needs a constant K")
         if node.op_type == "Pad":
             mode = next((a.s.decode() for a in node.attribute if a.name == "mode"), "constant")
             if mode != "constant" or (len(node.input) > 1 and node.input[1] not in constants):
-                raise ToolkitError(f"op {label} is not a constant-mode Pad with constant pads")
+                raise ExportError(f"op {label} is not a constant-mode Pad with constant pads")
 
 
 def gather_index_names(model: onnx.ModelProto) -> list[str]:
@@ -78,5 +78,5 @@ def require_non_negative_gathers(model: onnx.ModelProto, images: list[np.ndarray
     lowest = min_gather_index(model, images)
     constrained = any(op in profile.op_constraints for op in GATHER_OPS)
     if constrained and lowest is not None and lowest < 0:
-        raise ToolkitError(f"a Gather index reached {lowest} on the parity images; target {profile.name} needs indices >= 0")
+        raise ExportError(f"a Gather index reached {lowest} on the parity images; target {profile.name} needs indices >= 0")
     return lowest

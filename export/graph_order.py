@@ -11,7 +11,7 @@ import heapq
 
 import onnx
 
-from toolkit.errors import ToolkitError
+from export.errors import ExportError
 
 
 def _subgraphs(node: onnx.NodeProto) -> list[onnx.GraphProto]:
@@ -38,7 +38,7 @@ def sort_topologically(graph: onnx.GraphProto) -> None:
     """Reorder ``graph.node`` (and its subgraphs') in place so that each node follows its inputs' producers.
 
     Kahn's algorithm taking the ready node that came first in the old order, so a sorted graph is left
-    exactly as it was and a nearly sorted one moves as little as possible. `ToolkitError` on a cycle.
+    exactly as it was and a nearly sorted one moves as little as possible. `ExportError` on a cycle.
     """
     nodes = list(graph.node)
     producer = {name: index for index, node in enumerate(nodes) for name in node.output if name}
@@ -61,7 +61,7 @@ def sort_topologically(graph: onnx.GraphProto) -> None:
                 heapq.heappush(ready, consumer)
     if len(order) < len(nodes):
         stuck = next(node for index, node in enumerate(nodes) if waiting[index])
-        raise ToolkitError(f"the graph has a cycle through node {stuck.name or stuck.op_type}: it cannot be ordered")
+        raise ExportError(f"the graph has a cycle through node {stuck.name or stuck.op_type}: it cannot be ordered")
     for node in nodes:
         for subgraph in _subgraphs(node):
             sort_topologically(subgraph)

@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from export.graph_order import topologically_sorted
-from toolkit.errors import ToolkitError
+from export.errors import ExportError
 from vo_runtime.errors import first_line
 
 
@@ -54,7 +54,7 @@ def simplify(model: onnx.ModelProto) -> tuple[onnx.ModelProto, str]:
 
     simplified, ok = onnxsim.simplify(model)
     if not ok:
-        raise ToolkitError("onnxsim could not validate the simplified graph against the original")
+        raise ExportError("onnxsim could not validate the simplified graph against the original")
     return topologically_sorted(simplified), f"onnxsim {onnxsim.__version__}"
 
 
@@ -63,7 +63,7 @@ def full_check(model: onnx.ModelProto, what: str = "exported graph") -> None:
     try:
         onnx.checker.check_model(model, full_check=True)
     except (onnx.checker.ValidationError, onnx.shape_inference.InferenceError) as exc:
-        raise ToolkitError(f"{what} fails onnx.checker: {first_line(exc)}") from None
+        raise ExportError(f"{what} fails onnx.checker: {first_line(exc)}") from None
 
 
 def check_before_writing(model: onnx.ModelProto, what: str) -> dict:
@@ -97,4 +97,4 @@ def model_opset(model: onnx.ModelProto) -> int:
     for entry in model.opset_import:
         if entry.domain in ("", "ai.onnx"):
             return int(entry.version)
-    raise ToolkitError("exported model declares no default-domain opset")
+    raise ExportError("exported model declares no default-domain opset")

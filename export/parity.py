@@ -15,7 +15,8 @@ import onnx
 import torch
 from torch import nn
 
-from toolkit.errors import ToolkitError
+from export.errors import ExportError
+from vo_runtime.image_decode import decode_image, decode_problem
 from vo_runtime.errors import first_line
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp")
@@ -55,7 +56,7 @@ def default_parity_paths() -> list[Path]:
     """The shipped parity and calibration images (used when no image folder is given)."""
     paths = sorted(SHIPPED_PARITY_DIR.glob("*.png"))
     if not paths:
-        raise ToolkitError(f"the shipped parity images are missing from {SHIPPED_PARITY_DIR}: reinstall the package")
+        raise ExportError(f"the shipped parity images are missing from {SHIPPED_PARITY_DIR}: reinstall the package")
     return paths
 
 
@@ -70,19 +71,19 @@ def images_in(directory: str | Path, limit: int = 4) -> list[Path]:
     """Up to ``limit`` parity images of ``directory``, at least `MIN_PARITY_IMAGES` of them."""
     directory = Path(directory)
     if not directory.is_dir():
-        raise ToolkitError(f"parity image folder not found: {directory}")
+        raise ExportError(f"parity image folder not found: {directory}")
     paths = sorted(p for p in directory.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)[:limit]
     if len(paths) < MIN_PARITY_IMAGES:
-        raise ToolkitError(f"{directory} holds {len(paths)} image(s); a parity run needs at least {MIN_PARITY_IMAGES}")
+        raise ExportError(f"{directory} holds {len(paths)} image(s); a parity run needs at least {MIN_PARITY_IMAGES}")
     return paths
 
 
 def read_gray(path: Path) -> np.ndarray:
-    """An image file as HxW uint8 gray; `ToolkitError` when it cannot be read."""
+    """An image file as HxW uint8 gray; `ExportError` when it cannot be read."""
     data = np.fromfile(str(path), dtype=np.uint8) if path.is_file() else np.zeros(0, np.uint8)
-    gray = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+    gray, native = decode_image(data, cv2.IMREAD_GRAYSCALE)
     if gray is None:
-        raise ToolkitError(f"cannot read image {path}")
+        raise ExportError(f"cannot read image {path}{decode_problem(native)}")
     return gray
 
 
@@ -102,10 +103,10 @@ def prepare_parity_image(path: Path, height: int, width: int) -> np.ndarray:
     """`prepare_image` for a parity image, refusing one too small or too flat to show a difference."""
     gray = read_gray(path)
     if min(gray.shape) < MIN_PARITY_SIDE:
-        raise ToolkitError(f"parity image {path} is {gray.shape[1]}x{gray.shape[0]}; each side must be at least "
+        raise ExportError(f"parity image {path} is {gray.shape[1]}x{gray.shape[0]}; each side must be at least "
                            f"{MIN_PARITY_SIDE} px")
     if float(gray.std()) < MIN_PARITY_CONTRAST:
-        raise ToolkitError(f"parity image {path} is flat (grey-level spread {gray.std():.1f} < {MIN_PARITY_CONTRAST}): "
+        raise ExportError(f"parity image {path} is flat (grey-level spread {gray.std():.1f} < {MIN_PARITY_CONTRAST}): "
                            "parity needs images with texture")
     return resize_and_scale(gray, height, width)
 
@@ -118,7 +119,7 @@ def _session(model: onnx.ModelProto):
     try:
         return ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
     except Exception as exc:  # onnxruntime raises several unrelated types
-        raise ToolkitError(f"onnxruntime cannot load the exported graph: {first_line(exc)}") from None
+        raise ExportError(f"onnxruntime cannot load the exported graph: {first_line(exc)}") from None
 
 
 def _pixel_keys(keypoints: np.ndarray) -> dict[tuple[int, int], int]:

@@ -6,8 +6,6 @@ Loading never unpickles: safetensors holds raw tensors only, and a Magic Leap ``
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,15 +17,14 @@ from torch import nn
 
 from models.featurenet import FeatureNet, FeatureNetConfig
 from models.superpoint import SuperPointConfig, SuperPointNet, load_superpoint_v1
-from toolkit.errors import ToolkitError
+from models.errors import CheckpointError
 from vo_runtime.artefact import sha256_file
+from vo_runtime.atomic_file import atomic_path
 from vo_runtime.errors import first_line
 
 CHECKPOINT_FORMAT = "edgefeat-checkpoint/1"
-
-
-class CheckpointError(ToolkitError):
-    """A checkpoint is missing, corrupt, or does not match the architecture it claims."""
+__all__ = ["CHECKPOINT_FORMAT", "CheckpointError", "CheckpointInfo", "build_model", "checkpoint_metadata",
+           "load_checkpoint", "save_checkpoint"]
 
 
 @dataclass
@@ -60,14 +57,8 @@ def save_checkpoint(model: nn.Module, path: str | Path, metadata: dict[str, Any]
         "metadata": json.dumps(metadata or {}),
     }
     tensors = {key: value.detach().cpu().contiguous() for key, value in model.state_dict().items()}
-    handle, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".safetensors", dir=path.parent)
-    os.close(handle)
-    try:
-        save_file(tensors, tmp, metadata=header)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    with atomic_path(path) as temporary:
+        save_file(tensors, str(temporary), metadata=header)
     return path
 
 
@@ -97,12 +88,23 @@ def checkpoint_metadata(path: str | Path) -> dict[str, Any] | None:
     return metadata if isinstance(metadata, dict) else None
 
 
+def _require_finite(tensors: dict[str, torch.Tensor], path: Path) -> None:
+    """Weights with NaN or infinities give NaN scores, and the keypoint selection then indexes nothing: the
+    checkpoint is refused when it is loaded, naming the first such tensor."""
+    for name, tensor in tensors.items():
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise CheckpointError(f"{path} holds NaN or infinite weights ({name}): it is damaged or diverged in "
+                                  "training; use an earlier checkpoint")
+
+
 def load_checkpoint(path: str | Path) -> tuple[nn.Module, CheckpointInfo]:
     """Load a ``.safetensors`` EdgeFeat checkpoint or a Magic Leap ``superpoint_v1.pth``; model in eval mode.
 
     Raises `CheckpointError` (exit 2 in the CLI) for a missing, corrupt or mismatched file.
     """
     path = Path(path)
+    if path.is_dir():
+        raise CheckpointError(f"checkpoint {path} is a folder, not a checkpoint file")
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
     if path.stat().st_size == 0:
@@ -113,16 +115,18 @@ def load_checkpoint(path: str | Path) -> tuple[nn.Module, CheckpointInfo]:
             model = load_superpoint_v1(path)
         except (ValueError, RuntimeError, OSError) as exc:
             raise CheckpointError(f"cannot load {path}: {first_line(exc)}") from None
+        _require_finite(model.state_dict(), path)
         return model, CheckpointInfo(str(path), digest, "superpoint", model.config.to_dict(), {"source": "superpoint_v1"})
     tensors, header = _read_safetensors(path)
+    _require_finite(tensors, path)
     if header.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path} is a safetensors file but not an EdgeFeat checkpoint (no {CHECKPOINT_FORMAT} header)")
     try:
         config = json.loads(header["config"])
         metadata = json.loads(header.get("metadata", "{}"))
         model = build_model(header["arch"], config)
-    except (KeyError, TypeError, ValueError) as exc:
-        raise CheckpointError(f"{path} has a malformed config header ({exc})") from None
+    except (KeyError, TypeError, ValueError, RecursionError) as exc:
+        raise CheckpointError(f"{path} has a malformed config header ({first_line(exc)})") from None
     try:
         model.load_state_dict(tensors, strict=True)
     except RuntimeError as exc:

@@ -84,6 +84,10 @@ class DepthwiseSeparableBlock(nn.Module):
         return self.activation(self.pointwise_bn(self.pointwise(x)))
 
 
+MAX_CHANNELS = 4096  # per layer: 16x the shipped model's widest; beyond it only memory runs out
+MAX_BLOCKS = 64
+
+
 @dataclass
 class FeatureNetConfig:
     """Widths per scale (H, H/2, H/4, H/8), DS blocks per scale, heads and activation."""
@@ -107,6 +111,14 @@ class FeatureNetConfig:
             raise ValueError("widths and blocks need one entry per scale: H, H/2, H/4, H/8")
         if any(int(w) < 1 for w in self.widths) or any(int(b) < 0 for b in self.blocks):
             raise ValueError("widths must be >= 1 and blocks >= 0")
+        # Bounded before any layer exists: a width of 10^6 asks for terabytes of weights at construction.
+        channels = {"widths": max(int(w) for w in self.widths), "head_channels": int(self.head_channels),
+                    "descriptor_dim": int(self.descriptor_dim), "pixel_head_channels": int(self.pixel_head_channels),
+                    "context_channels": int(self.context_channels)}
+        too_wide = [f"{name} {value}" for name, value in channels.items() if value > MAX_CHANNELS]
+        if too_wide or max(int(b) for b in self.blocks) > MAX_BLOCKS or int(self.context_blocks) > MAX_BLOCKS:
+            raise ValueError(f"channels must be at most {MAX_CHANNELS} and blocks at most {MAX_BLOCKS} per stage "
+                             f"(got {', '.join(too_wide) or 'more blocks'})")
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"activation must be one of {ACTIVATIONS}, got {self.activation!r}")
         if int(self.pixel_head_channels) < 0:

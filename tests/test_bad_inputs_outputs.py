@@ -218,7 +218,7 @@ def test_an_output_moved_aside_by_a_killed_swap_is_put_back(tmp_path):
 
 def test_a_training_stopped_before_its_first_checkpoint_resumes(tmp_path, capsys, monkeypatch):
     """D20: killed before the first checkpoint, the run folder is refused by a fresh run (naming --resume), and
-    --resume starts it again from step 0 with its own config; D11: a batch beyond the images is refused."""
+    --resume starts it again from step 0 with its own config; D11: a batch beyond the machine's memory is refused."""
     import toolkit.training.trainer as trainer
 
     labels = tmp_path / "labels"
@@ -231,7 +231,7 @@ def test_a_training_stopped_before_its_first_checkpoint_resumes(tmp_path, capsys
     run = tmp_path / "run"
     base = ["train", "--images", str(PAIRS / "low"), "--labels", str(labels), "--out", str(run), "--threads", "1"]
     assert_refused(toolkit.cli.main, base + ["--config", str(config), "--batch", "100000000"], capsys,
-                   "more pairs a step than the", tmp_path)
+                   "more than this machine's", tmp_path)
     assert not run.exists()
 
     def killed(*_args, **_kwargs):

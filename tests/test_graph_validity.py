@@ -17,7 +17,7 @@ from export.onnx_export import check_before_writing
 from profiles import load_profile
 from toolkit.cli import main
 from toolkit.compression.report import ort_session
-from toolkit.errors import ToolkitError
+from export.errors import ExportError
 from vo_runtime.artefact import verify_artefact
 
 torch.set_num_threads(1)
@@ -129,7 +129,7 @@ def chain_graph(order: list[int]) -> onnx.ModelProto:
 
 def test_sort_orders_nodes_keeps_a_sorted_graph_and_refuses_a_cycle():
     unsorted = chain_graph([2, 0, 1])
-    with pytest.raises(ToolkitError, match=r"^the fp16 graph fails onnx\.checker: .*topologically sorted"):
+    with pytest.raises(ExportError, match=r"^the fp16 graph fails onnx\.checker: .*topologically sorted"):
         check_before_writing(unsorted, "the fp16 graph")
     sort_topologically(unsorted.graph)
     assert [n.name for n in unsorted.graph.node] == ["relu", "neg", "abs"]
@@ -140,7 +140,7 @@ def test_sort_orders_nodes_keeps_a_sorted_graph_and_refuses_a_cycle():
     assert ordered.SerializeToString() == serialised  # an already sorted graph is left byte for byte
     cyclic = chain_graph([0, 1, 2])
     cyclic.graph.node[0].input[0] = "b"  # relu reads neg's output, neg reads relu's
-    with pytest.raises(ToolkitError, match="cycle"):
+    with pytest.raises(ExportError, match="cycle"):
         sort_topologically(cyclic.graph)
 
 

@@ -14,7 +14,7 @@ from models.superpoint import SuperPointNet
 from models.teachers import build_teacher
 from models.teachers.alike import ALIKE_CONFIGS
 from models.teachers.aliked import ALIKED_CONFIGS
-from toolkit.errors import ToolkitError
+from models.errors import TeacherError
 from toolkit.training.homographies import points_inside, valid_mask, warp_images, warp_points
 
 torch.set_num_threads(1)
@@ -112,18 +112,18 @@ def test_shi_tomasi_peaks_on_the_corners_of_a_square() -> None:
 
 
 def test_bad_teacher_names_and_files_are_clear_errors(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    with pytest.raises(ToolkitError, match="unknown teacher"):
+    with pytest.raises(TeacherError, match="unknown teacher"):
         build_teacher("sift")
-    with pytest.raises(ToolkitError, match="not found"):
+    with pytest.raises(TeacherError, match="not found"):
         build_teacher(f"superpoint:{tmp_path / 'missing.pth'}")
     garbage = tmp_path / "garbage.pth"
     garbage.write_bytes(b"not a checkpoint")
-    with pytest.raises(ToolkitError, match="cannot load"):
+    with pytest.raises(TeacherError, match="cannot load"):
         build_teacher(f"superpoint:{garbage}")
     wrong = tmp_path / "wrong.pth"
     torch.save({"conv1a.weight": torch.zeros(3)}, wrong)
-    with pytest.raises(ToolkitError, match="cannot load"):
+    with pytest.raises(TeacherError, match="cannot load"):
         build_teacher(f"superpoint:{wrong}")
     monkeypatch.setenv("EDGEFEAT_ALIKE_WEIGHTS", str(tmp_path))
-    with pytest.raises(ToolkitError, match="weight file not found"):
+    with pytest.raises(TeacherError, match="weight file not found"):
         build_teacher("alike-n")

@@ -3,12 +3,10 @@ from __future__ import annotations
 
 import re
 
-from toolkit.errors import ToolkitError
-
-MIN_SIDE = 16
 # A 4096x4096 network input already needs gigabytes of activations; a larger one ends in an out-of-memory
-# crash long after the command started, so it is refused up front.
-MAX_SIDE = 4096
+# crash long after the command started, so it is refused up front (the profiles' bounds: one pair for all).
+from profiles.fields import MAX_SIDE, MIN_SIDE
+from toolkit.errors import ToolkitError
 
 
 def parse_hxw(text: str, option: str = "--size") -> tuple[int, int]:

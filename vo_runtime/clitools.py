@@ -3,16 +3,18 @@
 - `OneLineArgumentParser` keeps argparse's usage text for ``--help`` but reports a bad option as one line.
 - `run_guarded` parses, runs, and turns every failure into one ``error:`` line on stderr: exit 2 for bad
   input (the given error types, unreadable/unwritable files, out of memory), 130 for Ctrl-C, and 1 for an
-  unexpected failure (a bug: ``EDGEFEAT_TRACEBACK=1`` shows its traceback).
+  unexpected failure (a bug: ``EDGEFEAT_TRACEBACK=1`` shows its traceback). Python warnings from libraries
+  are held back: a failed command shows only its error line, a finished one each warning once, one line.
 """
 from __future__ import annotations
 
 import argparse
 import os
 import sys
+import warnings
 from typing import NoReturn, Sequence
 
-from vo_runtime.errors import first_line
+from vo_runtime.errors import MESSAGE_LIMIT, first_line
 
 BAD_INPUT, INTERNAL_ERROR, INTERRUPTED = 2, 1, 130
 TRACEBACK_VARIABLE = "EDGEFEAT_TRACEBACK"
@@ -35,6 +37,13 @@ def silence_native_logs() -> None:
         pass
 
 
+def _report_warnings(caught: list[warnings.WarningMessage]) -> None:
+    """Library warnings of a command that succeeded, one line each and once (no source line); a command that
+    fails reports only its error line."""
+    for text in dict.fromkeys(f"{w.category.__name__}: {' '.join(str(w.message).split())}" for w in caught):
+        print(f"warning: {text[:MESSAGE_LIMIT]}", file=sys.stderr)
+
+
 def _report(message: str) -> None:
     print(f"error: {' '.join(message.split())}", file=sys.stderr)
 
@@ -48,7 +57,11 @@ def run_guarded(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
         return exc.code if isinstance(exc.code, int) else BAD_INPUT
     silence_native_logs()
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("default")
+            code = int(args.func(args) or 0)
+        _report_warnings(caught)
+        return code
     except user_errors as exc:  # our own messages: one line already, never shortened
         _report(first_line(exc, limit=None))
     except MemoryError:

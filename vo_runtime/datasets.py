@@ -47,6 +47,8 @@ def resolve_camera(calib: str | Path, camera: int = 0) -> Camera:
     """A calibration file (KITTI calib.txt or JSON) or a preset name from `CAMERA_PRESETS`."""
     if str(calib) in CAMERA_PRESETS:
         return CAMERA_PRESETS[str(calib)]
+    if Path(calib).is_dir():
+        raise CalibrationError(f"calibration {calib} is a folder, not a file")
     if not Path(calib).is_file():
         raise CalibrationError(f"calibration not found: {calib} (a file, or one of {', '.join(CAMERA_PRESETS)})")
     return load_camera(calib, camera)
@@ -55,6 +57,8 @@ def resolve_camera(calib: str | Path, camera: int = 0) -> Camera:
 def open_sequence(path: str | Path, calib: str | Path | None = None, camera: int = 0) -> Sequence:
     """Open a sequence folder (or a folder of images inside one) and detect its layout."""
     root = Path(path)
+    if root.exists() and not root.is_dir():
+        raise VORuntimeError(f"{root} is a file, not a sequence folder")
     if not root.is_dir():
         raise VORuntimeError(f"sequence folder not found: {root}")
     mav0 = euroc_root(root)
@@ -73,7 +77,9 @@ def open_sequence(path: str | Path, calib: str | Path | None = None, camera: int
         if found:  # a KITTI folder, but not for this camera: say so rather than "no calib.txt"
             raise CalibrationError(f"{root} has calib.txt but no {kitti_images.name}/ for --camera {camera} "
                                    f"(found {', '.join(found)}/)")
-    if (root / "calib.txt").is_file() and kitti_images.is_dir():
+    if kitti_images.is_dir() and calib is None and not (root / "calib.txt").is_file():
+        raise CalibrationError(f"{root} has {kitti_images.name}/ but no calib.txt: pass --calib")
+    if kitti_images.is_dir() and (calib is not None or (root / "calib.txt").is_file()):  # --calib stands in
         frames = list_frames(kitti_images)
         times = root / "times.txt"
         return Sequence(

@@ -228,7 +228,8 @@ class MonoVO:
         self.camera.check_frame(height, width)
         if self._frame_size is not None and (height, width) != self._frame_size:
             raise CalibrationError(f"frame is {width}x{height} but this sequence's frames are "
-                                   f"{self._frame_size[1]}x{self._frame_size[0]} (the intrinsics fit one size)")
+                                   f"{self._frame_size[1]}x{self._frame_size[0]} (the size of its first frame, "
+                                   "which the intrinsics were bound to: an odd first frame misfits all the others)")
 
     # ------------------------------------------------------------------ states
     def _track(self, index: int, features: Features, result: VOResult, image: np.ndarray) -> None:

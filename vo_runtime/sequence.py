@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from vo_runtime.errors import FrameError, TimestampError, VORuntimeError
+from vo_runtime.image_decode import decode_image, decode_problem
 from vo_runtime.timestamps import check_timestamps
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff")
@@ -16,6 +17,8 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tif
 def list_frames(folder: str | Path) -> list[Path]:
     """Image files of a folder, sorted by name (KITTI ``000000.png``, TUM ``<timestamp>.png``)."""
     directory = Path(folder)
+    if directory.exists() and not directory.is_dir():
+        raise VORuntimeError(f"{directory} is a file, not a folder of frames")
     if not directory.is_dir():
         raise VORuntimeError(f"frame folder not found: {directory}")
     frames = sorted(p for p in directory.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
@@ -53,9 +56,9 @@ def read_frame(path: str | Path) -> np.ndarray:
         data = np.fromfile(str(path), dtype=np.uint8)
     except OSError as exc:
         raise FrameError(f"cannot read image {path} ({exc.strerror or type(exc).__name__})") from None
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    image, native = decode_image(data, cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise FrameError(f"cannot decode image {path}")
+        raise FrameError(f"cannot decode image {path}{decode_problem(native)}")
     if image.ndim == 3 and image.shape[2] == 4:
         image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
     return image

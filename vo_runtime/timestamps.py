@@ -36,10 +36,10 @@ def check_timestamps(stamps: Sequence[float], source: str) -> None:
     values = np.asarray(stamps, np.float64)
     bad = np.flatnonzero(~np.isfinite(values))
     if bad.size:
-        raise TimestampError(f"{source}: timestamp {bad[0] + 1} is {values[bad[0]]}, not a finite number")
+        raise TimestampError(f"{source}: timestamp {bad[0] + 1} is {float(values[bad[0]])}, not a finite number")
     steps = np.flatnonzero(np.diff(values) <= 0)
     if steps.size:
         index = int(steps[0])
         what = "repeats" if values[index + 1] == values[index] else "goes back from"
-        raise TimestampError(f"{source}: timestamp {index + 2} ({values[index + 1]!r}) {what} "
-                             f"{values[index]!r}: timestamps must increase")
+        raise TimestampError(f"{source}: timestamp {index + 2} ({float(values[index + 1])!r}) {what} "
+                             f"{float(values[index])!r}: timestamps must increase")

@@ -21,7 +21,7 @@ from torch import nn
 from models.teachers.alike import ALIKE_CONFIGS, load_alike
 from models.teachers.aliked import ALIKED_CONFIGS, load_aliked
 from models.teachers.classical import ShiTomasiTeacher
-from toolkit.errors import ToolkitError
+from models.errors import TeacherError
 from vo_runtime.errors import first_line
 
 Teacher = Callable[[torch.Tensor], torch.Tensor]
@@ -38,28 +38,28 @@ def build_teacher(name: str, weights_dir: str | Path | None = None) -> nn.Module
     """Parse a ``--teacher`` string into an eval-mode teacher module.
 
     Raises:
-        ToolkitError: unknown name, missing or unreadable weight file.
+        TeacherError: unknown name, missing or unreadable weight file.
     """
     if name in ALIKE_CONFIGS or name in ALIKED_CONFIGS:
         folder = Path(weights_dir) if weights_dir else alike_weights_dir()
         path = folder / f"{name}.pth"
         if not path.is_file():
-            raise ToolkitError(f"teacher {name}: weight file not found: {path}")
+            raise TeacherError(f"teacher {name}: weight file not found: {path}")
         loader = load_alike if name in ALIKE_CONFIGS else load_aliked
         try:
             return loader(name, folder)
         except Exception as exc:  # torch.load raises many types (zip, pickle, shape): one message
-            raise ToolkitError(f"teacher {name}: cannot load {path}: {first_line(exc)}") from None
+            raise TeacherError(f"teacher {name}: cannot load {path}: {first_line(exc)}") from None
     if name.startswith("superpoint:"):
         from models.teachers.superpoint import load_superpoint_teacher
 
         path = Path(name.split(":", 1)[1]).expanduser()
         if not path.is_file():
-            raise ToolkitError(f"teacher superpoint: weight file not found: {path}")
+            raise TeacherError(f"teacher superpoint: weight file not found: {path}")
         try:
             return load_superpoint_teacher(path)
         except Exception as exc:  # torch.load raises many types (zip, pickle, shape): one message
-            raise ToolkitError(f"teacher superpoint: cannot load {path}: {first_line(exc)}") from None
+            raise TeacherError(f"teacher superpoint: cannot load {path}: {first_line(exc)}") from None
     if name == "shi-tomasi":
         return ShiTomasiTeacher()
-    raise ToolkitError(f"unknown teacher {name!r} (expected one of: {', '.join(TEACHER_NAMES)})")
+    raise TeacherError(f"unknown teacher {name!r} (expected one of: {', '.join(TEACHER_NAMES)})")

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from toolkit.errors import ToolkitError
+from models.errors import ModelError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent
 SHIPPED = ("featurenet-elu", "featurenet-relu")
@@ -17,12 +17,12 @@ DEFAULT = "featurenet-elu"
 
 
 def shipped_checkpoint(name: str = DEFAULT) -> Path:
-    """Path of a shipped checkpoint. Raises ToolkitError for an unknown name or a missing file."""
+    """Path of a shipped checkpoint. Raises ModelError for an unknown name or a missing file."""
     if name not in SHIPPED:
-        raise ToolkitError(f"no shipped model {name!r} (shipped: {', '.join(SHIPPED)})")
+        raise ModelError(f"no shipped model {name!r} (shipped: {', '.join(SHIPPED)})")
     path = WEIGHTS_DIR / f"{name}.safetensors"
     if not path.is_file():
-        raise ToolkitError(f"the shipped weights {path} are missing: reinstall the package")
+        raise ModelError(f"the shipped weights {path} are missing: reinstall the package")
     return path
 
 

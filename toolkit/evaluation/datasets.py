@@ -24,6 +24,7 @@ import numpy as np
 
 from toolkit.errors import ToolkitError
 from toolkit.sizes import MAX_SIDE, MIN_SIDE, parse_hxw
+from vo_runtime.image_decode import decode_image, decode_problem
 
 HPATCHES_IMAGE_EXTENSIONS = (".ppm", ".png", ".jpg")
 PAIR_IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".bmp")
@@ -168,9 +169,9 @@ def load_gray(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise ToolkitError(f"image not found: {path}")
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    image, native = decode_image(path.read_bytes(), cv2.IMREAD_GRAYSCALE)
     if image is None or image.size == 0:
-        raise ToolkitError(f"cannot decode image {path}")
+        raise ToolkitError(f"cannot decode image {path}{decode_problem(native)}")
     return image
 
 

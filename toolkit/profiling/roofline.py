@@ -94,8 +94,8 @@ def _figure(hardware: dict[str, Any], name: str, source: str, zero: bool = False
     if name not in hardware:
         raise ToolkitError(f"profile {source} is missing the field '{table}.{name}'")
     value = hardware[name]
-    low_ok = value >= 0 if zero else value > 0
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or not low_ok:
+    number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not number or not (value >= 0 if zero else value > 0):
         raise ToolkitError(f"profile {source}: {table}.{name} must be a {'non-negative' if zero else 'positive'} "
                            f"finite number, got {value!r}")
     return float(value)

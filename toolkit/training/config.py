@@ -141,7 +141,9 @@ def read_config_file(path: str | Path) -> TrainConfig:
     """``.toml`` or ``.json`` file -> TrainConfig."""
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise ToolkitError(f"config {path} is not UTF-8 text") from None
     except OSError as exc:
         raise ToolkitError(f"cannot read config {path}: {exc.strerror}") from None
     try:
@@ -151,8 +153,12 @@ def read_config_file(path: str | Path) -> TrainConfig:
             values = tomllib.loads(text)
         else:
             values = json.loads(text)
+    except RecursionError:
+        raise ToolkitError(f"config {path} nests too deeply to be a training config") from None
     except ValueError as exc:
         raise ToolkitError(f"cannot parse config {path}: {exc}") from None
+    if not isinstance(values, dict):
+        raise ToolkitError(f"config {path} holds a {type(values).__name__}, not a table of TrainConfig fields")
     return config_from_dict(values)
 
 

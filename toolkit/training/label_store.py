@@ -14,8 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import tempfile
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,8 +22,13 @@ import cv2
 import numpy as np
 
 from toolkit.errors import ToolkitError
+from vo_runtime.atomic_file import write_atomic  # noqa: F401 (the store's writer; run_log and trainer use it)
+from vo_runtime.errors import first_line
+from vo_runtime.image_decode import decode_image
 
 STORE_FORMAT = "edgefeat-labels/1"
+# What a truncated or garbled .npz raises on opening or reading a member.
+UNREADABLE_NPZ = (OSError, ValueError, EOFError, zipfile.BadZipFile)
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
 # How images are brought to the label size; part of the settings because it changes coordinates.
 PREPROCESS = "gray/center-crop-to-aspect/resize-area"
@@ -68,7 +72,7 @@ def read_image(path: Path, size: tuple[int, int]) -> tuple[np.ndarray, str] | No
         data = path.read_bytes()
     except OSError:
         return None
-    gray = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) if data else None
+    gray, _native = decode_image(data, cv2.IMREAD_GRAYSCALE)  # an unreadable image is counted and skipped
     if gray is None or min(gray.shape) < 8:
         return None
     return to_label_size(gray, size), hashlib.sha256(data).hexdigest()
@@ -79,19 +83,6 @@ def hash_file(path: Path) -> str | None:
         return hashlib.sha256(path.read_bytes()).hexdigest()
     except OSError:
         return None
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temp file in the same folder and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
-    try:
-        with os.fdopen(handle, "wb") as file:
-            file.write(data)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
 
 
 def _describe_difference(old: dict, new: dict, prefix: str = "") -> str:
@@ -171,7 +162,18 @@ class LabelStore:
         return int(height), int(width)
 
     def has(self, sha256: str) -> bool:
-        return (self.items / f"{sha256}.npz").exists()
+        """Whether whole labels of this image are stored: a file cut short (a disk that filled, a copy that
+        stopped) counts as absent, so a resumed run labels the image again instead of training failing later."""
+        wanted = ("keypoints", "scores", "descriptors") if self.descriptor_stride else ("keypoints", "scores")
+        try:
+            with np.load(self.items / f"{sha256}.npz") as data:
+                for name in wanted:
+                    data[name]  # reading checks the member's CRC
+        except FileNotFoundError:
+            return False
+        except UNREADABLE_NPZ + (KeyError,):
+            return False
+        return True
 
     @property
     def descriptor_stride(self) -> int:
@@ -197,8 +199,8 @@ class LabelStore:
                 return data["keypoints"], data["scores"]
         except FileNotFoundError:
             raise ToolkitError(f"no labels for image {sha256[:12]} in {self.root}") from None
-        except (OSError, ValueError, KeyError) as exc:
-            raise ToolkitError(f"corrupt label file {path}: {exc}") from None
+        except UNREADABLE_NPZ + (KeyError,) as exc:
+            raise ToolkitError(f"corrupt label file {path}: {first_line(exc)}: label the folder again") from None
 
     def get_descriptors(self, sha256: str) -> np.ndarray:
         """The teacher's descriptor map [D, H/stride, W/stride] float16 of one image.
@@ -216,8 +218,8 @@ class LabelStore:
             ) from None
         except FileNotFoundError:
             raise ToolkitError(f"no labels for image {sha256[:12]} in {self.root}") from None
-        except (OSError, ValueError) as exc:
-            raise ToolkitError(f"corrupt label file {path}: {exc}") from None
+        except UNREADABLE_NPZ as exc:
+            raise ToolkitError(f"corrupt label file {path}: {first_line(exc)}: label the folder again") from None
 
     def save_index(self) -> None:
         write_atomic(self.root / "index.json", json.dumps(self.index, indent=1, sort_keys=True).encode())

@@ -3,10 +3,9 @@ from __future__ import annotations
 
 import csv
 import io
-import os
 from pathlib import Path
 
-from toolkit.training.label_store import write_atomic
+from vo_runtime.atomic_file import atomic_path, write_atomic
 
 
 def truncate_csv(path: Path, fields: list[str], last_step: int) -> None:
@@ -50,10 +49,9 @@ def _plot_columns(csv_path: Path, png_path: Path, keys: tuple[str, ...], ylabel:
     axis.legend()
     axis.grid(alpha=0.3)
     figure.tight_layout()
-    tmp = png_path.with_name(f".tmp-{png_path.name}")
-    figure.savefig(tmp)
+    with atomic_path(png_path) as temporary:
+        figure.savefig(temporary, format="png")
     plt.close(figure)
-    os.replace(tmp, png_path)
 
 
 def plot_loss_curve(log_path: Path, png_path: Path) -> None:
