@@ -17,6 +17,8 @@ import onnxruntime as ort
 import torch
 from torch import nn
 
+from vo_runtime.progress import progress_bar
+
 
 @dataclass
 class LatencyStats:
@@ -71,7 +73,7 @@ def time_interleaved(
         for _ in range(warmup):
             run()
     timings: dict[str, list[float]] = {name: [] for name in runners}
-    for _ in range(repeats):
+    for _ in progress_bar(range(repeats), desc=f"timing {len(runners)} graph(s)", unit="round", leave=False):
         for name, run in runners.items():
             start = time.perf_counter()
             run()
