@@ -17,6 +17,7 @@ import numpy as np
 
 from export.parity import SHIPPED_PARITY_DIR, default_parity_paths, read_gray
 from vo_runtime.artefact import MANIFEST_NAME, verify_artefact
+from vo_runtime.output_listing import foreign_entries, read_listing, write_listing
 from vo_runtime.providers import open_session
 from vo_runtime.references import REFERENCE_IMAGES, onnx_runner, reference_cases, write_references
 
@@ -55,6 +56,8 @@ def add_references(directory: Path) -> dict:
     every other field stay as they are). Returns the new ``reference`` entry."""
     directory = Path(directory)
     manifest = verify_artefact(directory)
+    listing = read_listing(directory)
+    owned = listing is not None and not foreign_entries(directory, listing)  # --force may replace it
     height, width = manifest["input"]["shape"][2:]
     images = reference_images(_parity_paths(manifest), height, width)
     manifest["reference"] = write_cpu_references(directory, manifest["onnx"]["file"], images,
@@ -62,6 +65,8 @@ def add_references(directory: Path) -> dict:
     staging = directory / f".{MANIFEST_NAME}.tmp"
     staging.write_text(json.dumps(manifest, indent=2) + "\n")
     staging.replace(directory / MANIFEST_NAME)
+    if owned:  # still the output of the command that wrote it, reference.npz included
+        write_listing(directory, listing["kind"])
     return manifest["reference"]
 
 

@@ -187,3 +187,20 @@ def test_the_shipped_artefacts_pass_verify(artefact: Path, capsys) -> None:
     assert verify_main([str(artefact), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["keypoint_agreement"] >= 0.99
+
+
+def test_an_older_artefact_gets_references_without_its_model_changing(exported: Path, tmp_path: Path) -> None:
+    from export.reference import add_references
+    from vo_runtime.output_listing import foreign_entries, read_listing, write_listing
+
+    artefact = _copy(exported, tmp_path)
+    manifest = json.loads((artefact / "manifest.json").read_text())
+    del manifest["reference"]  # as written before 0.2.0
+    (artefact / "manifest.json").write_text(json.dumps(manifest))
+    (artefact / REFERENCE_NAME).unlink()
+    write_listing(artefact, read_listing(exported)["kind"])
+    model = sha256_file(artefact / "model.onnx")
+    add_references(artefact)
+    assert sha256_file(artefact / "model.onnx") == model
+    assert verify_main([str(artefact)]) == 0
+    assert foreign_entries(artefact, read_listing(artefact)) == []  # still export's own output for --force
