@@ -16,16 +16,23 @@ from __future__ import annotations
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Iterable, Iterator
+from typing import Callable, Iterable, Iterator, Optional, Protocol
 
 import numpy as np
 
-from vo_runtime.config import Extraction
+from vo_runtime.config import Extraction, VOResult
 from vo_runtime.errors import CalibrationError, FrameError, VORuntimeError
 
-if TYPE_CHECKING:
-    from vo_runtime.config import VOResult
-    from vo_runtime.odometry import MonoVO
+
+class Tracker(Protocol):
+    """What the pipeline needs of a VO (`MonoVO` is one), named here so this module does not import the VO
+    that imports it: extraction that touches no state, then tracking (or skipping) in order."""
+
+    def extract(self, image: Optional[np.ndarray]) -> Extraction: ...
+
+    def process_extraction(self, extraction: Extraction, timestamp: Optional[float] = None) -> VOResult: ...
+
+    def skip(self, problem: str, timestamp: Optional[float] = None) -> VOResult: ...
 
 
 _END = object()
@@ -50,7 +57,7 @@ def _as_frame(item: object) -> StreamFrame:
     raise FrameError(f"a stream holds (image, timestamp) pairs or StreamFrames, got {type(item).__name__}")
 
 
-def _extract(vo: MonoVO, frame: StreamFrame) -> Extraction:
+def _extract(vo: Tracker, frame: StreamFrame) -> Extraction:
     """Load (if ``frame.image`` is a loader) and extract one frame; a loader's `FrameError` is its problem."""
     image = frame.image
     if callable(image):
@@ -65,7 +72,7 @@ def _named(frame: StreamFrame, problem: str) -> str:
     return f"{frame.name}: {problem}" if frame.name else problem
 
 
-def track_stream(vo: MonoVO, frames: Iterable, ahead: int = 2, skip_wrong_size: bool = False) -> Iterator[VOResult]:
+def track_stream(vo: Tracker, frames: Iterable, ahead: int = 2, skip_wrong_size: bool = False) -> Iterator[VOResult]:
     """An iterator over `vo`'s result for each frame of ``frames``, extracting up to ``ahead`` frames in
     front on a worker thread (0: inline). See `MonoVO.stream`; a bad ``ahead`` raises here, at once."""
     if isinstance(ahead, bool) or not isinstance(ahead, (int, np.integer)) or ahead < 0:
@@ -73,7 +80,7 @@ def track_stream(vo: MonoVO, frames: Iterable, ahead: int = 2, skip_wrong_size: 
     return _results(vo, iter(frames), int(ahead), skip_wrong_size)
 
 
-def _results(vo: MonoVO, items: Iterator, ahead: int, skip_wrong_size: bool) -> Iterator[VOResult]:
+def _results(vo: Tracker, items: Iterator, ahead: int, skip_wrong_size: bool) -> Iterator[VOResult]:
     executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vo-extract") if ahead > 0 else None
     pending: deque[tuple[StreamFrame, Future | None]] = deque()
 

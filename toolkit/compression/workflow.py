@@ -75,7 +75,7 @@ def evaluation_metrics(models: dict[str, FeatureNet], size: tuple[int, int]) -> 
 
     try:
         from toolkit.evaluation.datasets import read_hpatches, read_registered_pairs
-        from toolkit.evaluation.detectors import Detector, DetectorConfig
+        from toolkit.evaluation.detection import Detector, DetectorConfig
         from toolkit.evaluation.runner import EvalConfig, ImageCache, evaluate_model, summarise
         from toolkit.evaluation.torch_models import detect_with_network
     except ImportError as exc:

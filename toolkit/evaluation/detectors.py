@@ -16,56 +16,15 @@ Specs (optionally prefixed ``label=`` to name the row in the report):
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
 
 from toolkit.errors import ToolkitError
-
-
-@dataclass
-class Detection:
-    """keypoints ``[N, 2]`` float32 (x, y); scores ``[N]`` float32; descriptors ``[N, D]`` float32 or uint8 bits."""
-
-    keypoints: np.ndarray
-    scores: np.ndarray
-    descriptors: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.keypoints.shape[0])
-
-
-@dataclass
-class DetectorConfig:
-    """Settings applied to every model alike (NMS only where the post-processing runs in Python)."""
-
-    max_keypoints: int = 1000
-    nms_radius: int = 4
-    score_window: int = 1  # 65-way networks: `models.keypoints.keypoint_scores`; 1 = the peak pixel
-    detection_threshold: float = 0.005
-    border: int = 4
-
-
-@dataclass
-class Detector:
-    """A named image -> `Detection` function with the settings it ran under (reported in the JSON)."""
-
-    label: str
-    kind: str
-    detect: Callable[[np.ndarray], Detection]
-    settings: dict[str, Any] = field(default_factory=dict)
-
-    def __call__(self, gray: np.ndarray) -> Detection:
-        return self.detect(gray)
-
-
-def top_k(detection: Detection, max_keypoints: int) -> Detection:
-    """Keep the ``max_keypoints`` highest-scoring detections, sorted by descending score."""
-    order = np.argsort(-detection.scores, kind="stable")[:max_keypoints]
-    return Detection(detection.keypoints[order], detection.scores[order], detection.descriptors[order])
+# The shared types live in their own module, which torch_models imports too (no import circle).
+from toolkit.evaluation.detection import Detection, Detector, DetectorConfig, top_k  # noqa: F401 (re-exported)
 
 
 def _opencv_detection(keypoints: list, descriptors: np.ndarray | None, width: int, dtype: type) -> Detection:

@@ -9,7 +9,7 @@ from typing import Any, Callable
 import numpy as np
 
 from toolkit.evaluation.datasets import ImagePair, load_gray, resize_with_matrix, scale_homography
-from toolkit.evaluation.detectors import Detection, Detector
+from toolkit.evaluation.detection import Detection, Detector
 from toolkit.evaluation.metrics import PairMetrics, evaluate_detections
 from vo_runtime.progress import progress_bar
 

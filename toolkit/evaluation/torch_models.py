@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from toolkit.errors import ToolkitError
-from toolkit.evaluation.detectors import Detection, Detector, DetectorConfig
+from toolkit.evaluation.detection import Detection, Detector, DetectorConfig
 from vo_runtime.errors import first_line
 
 CELL = 8
