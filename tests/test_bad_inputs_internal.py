@@ -241,3 +241,16 @@ def test_python_warnings_stay_off_a_failing_command(monkeypatch, capsys):
     monkeypatch.setattr(cmd_export, "run", warns_then_fails)
     assert toolkit.cli.main(["export", "--target", "x86-cpu", "-o", "unused"]) == 2
     assert capsys.readouterr().err == "error: the input is bad\n"
+
+
+def test_an_allocation_failure_is_the_memory_line(monkeypatch, capsys):
+    """D13: torch says an allocation failed with a RuntimeError, which missed the out-of-memory handler."""
+    import toolkit.cmd_export as cmd_export
+
+    def cannot_allocate(_args):
+        raise RuntimeError("[enforce fail at alloc_cpu.cpp:117] DefaultCPUAllocator: can't allocate memory: you tried "
+                           "to allocate 4000000000000 bytes")
+
+    monkeypatch.setattr(cmd_export, "run", cannot_allocate)
+    assert toolkit.cli.main(["export", "--target", "x86-cpu", "-o", "unused"]) == 2
+    assert capsys.readouterr().err.startswith("error: out of memory")

@@ -37,6 +37,16 @@ def silence_native_logs() -> None:
         pass
 
 
+OUT_OF_MEMORY = "out of memory: use a smaller input size, batch or image count"
+# How torch and onnxruntime say an allocation failed: a RuntimeError, not a MemoryError (torch's CPU allocator:
+# "can't allocate memory: you tried to allocate 4000000000000 bytes"; CUDA: "CUDA out of memory").
+ALLOCATION_FAILURES = ("can't allocate memory", "out of memory", "failed to allocate memory", "bad_alloc")
+
+
+def is_allocation_failure(exc: BaseException) -> bool:
+    return isinstance(exc, RuntimeError) and any(text in str(exc).lower() for text in ALLOCATION_FAILURES)
+
+
 def _report_warnings(caught: list[warnings.WarningMessage]) -> None:
     """Library warnings of a command that succeeded, one line each and once (no source line); a command that
     fails reports only its error line."""
@@ -65,7 +75,7 @@ def run_guarded(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
     except user_errors as exc:  # our own messages: one line already, never shortened
         _report(first_line(exc, limit=None))
     except MemoryError:
-        _report("out of memory: use a smaller input size, batch or image count")
+        _report(OUT_OF_MEMORY)
     except OSError as exc:  # a file we could not read or write (full disk, permissions)
         where = f": {exc.filename}" if exc.filename else ""
         _report(f"{exc.strerror or first_line(exc)}{where}")
@@ -73,6 +83,9 @@ def run_guarded(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
         _report("interrupted")
         return INTERRUPTED
     except Exception as exc:  # noqa: BLE001 - the last resort: a bug, still one line unless asked for more
+        if is_allocation_failure(exc):
+            _report(OUT_OF_MEMORY)
+            return BAD_INPUT
         if os.environ.get(TRACEBACK_VARIABLE):
             raise
         _report(f"internal error ({type(exc).__name__}: {first_line(exc)}); rerun with {TRACEBACK_VARIABLE}=1 "
