@@ -7,6 +7,7 @@ from contextlib import nullcontext
 from pathlib import Path
 
 from toolkit.atomic import locked_output_dir
+from vo_runtime.machine import check_thread_count
 from toolkit.training.trainer import TrainConfig, read_config_file, resolve_config, train
 
 EPILOG = """examples:
@@ -43,12 +44,10 @@ def _train_into(args: argparse.Namespace, run_dir: Path) -> int:
     config = read_config_file(args.config) if args.config else TrainConfig()
     config = resolve_config(run_dir, args.resume, config, args.steps, args.batch)
     if args.workers is not None:  # allowed on --resume too: samples do not depend on the worker count
-        if args.workers < 0:
-            raise ToolkitError("--workers must be >= 0")
+        check_thread_count(args.workers, "--workers", ToolkitError, allow_zero=True)  # processes, one a core
         config.num_workers = args.workers
     if args.threads is not None:  # also on --resume: results do not depend on it
-        if args.threads < 1:
-            raise ToolkitError("--threads must be >= 1")
+        check_thread_count(args.threads, "--threads", ToolkitError)
         config.threads = args.threads
     result = train(config, args.images, args.labels, run_dir, resume=args.resume)
     if result["rank"] != 0:  # under torchrun only the first process reports
