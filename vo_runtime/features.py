@@ -8,8 +8,10 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from vo_runtime.artefact import aspect_distortion, verify_artefact
-from vo_runtime.errors import ArtefactError, FrameError, VORuntimeError
+from vo_runtime.artefact import artefact_path, aspect_distortion, verify_artefact
+from vo_runtime.errors import ArtefactError, FrameError, VORuntimeError, first_line
+from vo_runtime.machine import check_thread_count
+from vo_runtime.graph_contract import KEYPOINT_OUTPUTS, check_graph, checked_detections, read_contract
 
 MIN_FRAME_SIDE = 16  # smaller frames carry no trackable structure (and break the 8-px network cell)
 
@@ -89,24 +91,19 @@ class FeatureExtractor:
                  providers: str | Sequence[str] | None = "auto") -> None:
         from vo_runtime.providers import open_session, short_name
 
-        if not isinstance(threads, (int, np.integer)) or threads < 0:
-            raise VORuntimeError(f"threads must be an integer >= 0 (0: onnxruntime's choice), got {threads!r}")
-        self.directory = Path(artefact)
+        check_thread_count(int(threads) if isinstance(threads, np.integer) else threads, "threads", allow_zero=True)
+        self.directory = artefact_path(artefact)
         self.manifest = verify_artefact(self.directory)
-        if self.manifest.get("mode") != "keypoints":
-            raise ArtefactError(f"{self.directory} is a dense artefact; FeatureExtractor needs keypoint mode")
-        shape = self.manifest["input"]["shape"]
-        self.height, self.width = int(shape[2]), int(shape[3])
-        try:
-            self.scale = float(self.manifest["input"]["normalisation"]["scale"])
-        except (KeyError, TypeError, ValueError):
-            raise ArtefactError(f"{self.directory}: the manifest has no input.normalisation.scale") from None
+        self.contract = read_contract(self.manifest, self.directory)  # what every run is held to
+        self.height, self.width, self.scale = self.contract.height, self.contract.width, self.contract.scale
         self.resize_policy = resize_policy or self.manifest["input"].get("resize_policy", "resize")
         if self.resize_policy not in ("resize", "reject"):
             raise ArtefactError(f"unknown resize policy {self.resize_policy!r}")
         self.session = open_session(self.directory / self.manifest["onnx"]["file"], threads, providers)
         self.providers = [short_name(p) for p in self.session.get_providers()]
+        check_graph(self.session, self.contract)
         self.input_name = self.session.get_inputs()[0].name
+        self._detect(np.zeros((1, 1, self.height, self.width), np.float32))  # a bad graph fails here, not at frame 1
 
     def aspect_distortion(self, height: int, width: int) -> float:
         """How much resizing an ``height`` x ``width`` frame to the input stretches one axis against the other
@@ -126,16 +123,20 @@ class FeatureExtractor:
                 )
             gray = cv2.resize(gray, (self.width, self.height), interpolation=cv2.INTER_AREA)
         tensor = (gray.astype(np.float32) * self.scale)[None, None]
-        keypoints, scores, descriptors, num_valid = self.session.run(
-            ["keypoints", "scores", "descriptors", "num_valid"], {self.input_name: tensor}
-        )
-        n = int(np.asarray(num_valid).reshape(-1)[0])
-        keypoints = keypoints[:n].astype(np.float32)
+        keypoints, scores, descriptors = self._detect(tensor)
         if (height, width) != (self.height, self.width):
             # Pixel-centre convention: centres sit at integers, so scale about the -0.5 corner.
             keypoints[:, 0] = (keypoints[:, 0] + 0.5) * (width / self.width) - 0.5
             keypoints[:, 1] = (keypoints[:, 1] + 0.5) * (height / self.height) - 0.5
-        return Features(keypoints, scores[:n].astype(np.float32), descriptors[:n].astype(np.float32))
+        return Features(keypoints, scores, descriptors)
+
+    def _detect(self, tensor: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Run the graph on one input tensor; its real rows, held to the manifest (`checked_detections`)."""
+        try:
+            outputs = self.session.run(list(KEYPOINT_OUTPUTS), {self.input_name: tensor})
+        except Exception as exc:  # onnxruntime raises several unrelated types for a graph that cannot run
+            raise ArtefactError(f"onnxruntime cannot run {self.directory}: {first_line(exc)}") from None
+        return checked_detections(outputs, self.contract)
 
 
 class OrbExtractor:
@@ -160,6 +161,51 @@ class OrbExtractor:
         unit = (2.0 * bits - 1.0) / np.sqrt(bits.shape[1])
         points = np.array([kp.pt for kp in keypoints], dtype=np.float32)
         return Features(points[order], scores[order], unit[order])
+
+
+def spread_selection(keypoints: np.ndarray, scores: np.ndarray, budget: int, grid: tuple[int, int] | None,
+                     width: int, height: int) -> np.ndarray:
+    """Rows of the ``budget`` keypoints to keep, in descending score. With ``grid`` (columns, rows) the image is
+    cut into cells and the keypoints are taken round-robin by their rank within their cell (every cell's best,
+    then every cell's second, ...), as ORB's grid spreads its features; without, the ``budget`` best scores.
+
+    keypoints: [N, 2] (x, y) frame pixels; scores: [N], descending.
+    """
+    if len(keypoints) <= budget:
+        return np.arange(len(keypoints))
+    if grid is None:
+        return np.arange(budget)
+    columns, rows = grid
+    cx = np.clip((keypoints[:, 0] * columns / width).astype(np.int64), 0, columns - 1)
+    cy = np.clip((keypoints[:, 1] * rows / height).astype(np.int64), 0, rows - 1)
+    cell = cy * columns + cx
+    order = np.argsort(cell, kind="stable")  # within a cell the rows stay in descending score
+    first = np.searchsorted(cell[order], np.arange(columns * rows))
+    rank = np.empty(len(cell), np.int64)
+    rank[order] = np.arange(len(cell)) - first[cell[order]]
+    keep = np.lexsort((np.arange(len(cell)), rank))[:budget]  # by rank in the cell, then by score
+    return np.sort(keep)
+
+
+class KeypointBudget:
+    """Any extractor, keeping at most ``budget`` keypoints a frame, spread over a ``grid`` of cells
+    (`spread_selection`). Everything else (input size, providers) is the wrapped extractor's."""
+
+    def __init__(self, extractor: object, budget: int, grid: tuple[int, int] | None = None) -> None:
+        if isinstance(budget, bool) or not isinstance(budget, (int, np.integer)) or budget < 1:
+            raise VORuntimeError(f"the keypoint budget must be a positive integer, got {budget!r}")
+        if grid is not None and (len(grid) != 2 or min(grid) < 1):
+            raise VORuntimeError(f"the spread grid is (columns, rows) of positive integers, got {grid!r}")
+        self.extractor, self.budget, self.grid = extractor, int(budget), grid
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self.__dict__["extractor"], name)
+
+    def __call__(self, image: np.ndarray) -> Features:
+        features = self.extractor(image)
+        height, width = image.shape[:2]
+        keep = spread_selection(features.keypoints, features.scores, self.budget, self.grid, width, height)
+        return Features(features.keypoints[keep], features.scores[keep], features.descriptors[keep])
 
 
 def detector_pixel(extractor: object, height: int, width: int) -> float:
