@@ -28,6 +28,14 @@ def require_evaluation_packages() -> None:
                              f"pip install '{EVALUATION_EXTRA}'")
 
 
+def require_groundtruth_file(path: Path) -> None:
+    """`VORuntimeError` unless ``path`` is a file: a folder is named as one, not reported missing."""
+    if path.is_dir():
+        raise VORuntimeError(f"ground truth {path} is a folder, not a file")
+    if not path.is_file():
+        raise VORuntimeError(f"ground truth not found: {path}")
+
+
 def load_groundtruth(path: str | Path, layout: str, timestamps: Seq[float]) -> Any:
     """Ground truth as an evo trajectory: KITTI ``poses.txt`` (12 numbers a line, one line per frame, stamped
     with ``timestamps``) or TUM ``groundtruth.txt``. Raises `VORuntimeError` for anything else, before a run."""
@@ -36,8 +44,7 @@ def load_groundtruth(path: str | Path, layout: str, timestamps: Seq[float]) -> A
     from evo.tools import file_interface
 
     path = Path(path)
-    if not path.is_file():
-        raise VORuntimeError(f"ground truth not found: {path}")
+    require_groundtruth_file(path)
     if layout == "tum":
         try:
             trajectory = file_interface.read_tum_trajectory_file(str(path))
@@ -46,6 +53,11 @@ def load_groundtruth(path: str | Path, layout: str, timestamps: Seq[float]) -> A
                                  f"{first_line(exc)}") from None
         if trajectory.num_poses < 2:
             raise VORuntimeError(f"{path} holds {trajectory.num_poses} poses: nothing to evaluate against")
+        # Checked now: a NaN pose passed this reader and failed the alignment after the whole run.
+        # (Repeated stamps are real: TUM's own files hold some, and the association copes with them.)
+        values = (trajectory.timestamps, trajectory.positions_xyz, trajectory.orientations_quat_wxyz)
+        if not all(np.all(np.isfinite(value)) for value in values):
+            raise VORuntimeError(f"{path} holds non-finite poses or timestamps (NaN or inf)")
         return trajectory
     rows = _kitti_rows(path)
     if len(rows) < len(timestamps):
@@ -69,8 +81,7 @@ def sequence_groundtruth(sequence: Any, path: str | Path | None = None) -> Any:
 
     from vo_runtime.euroc import camera_groundtruth
 
-    if not path.is_file():
-        raise VORuntimeError(f"ground truth not found: {path}")
+    require_groundtruth_file(path)
     stamps, poses = camera_groundtruth(path, sequence.body_from_camera, sequence.timestamps)
     return PoseTrajectory3D(poses_se3=list(poses), timestamps=stamps)
 
@@ -127,25 +138,51 @@ def evaluate(results: Seq[VOResult], groundtruth: Any, layout: str, timestamps: 
         "rpe_rmse_m": round(float(rpe.get_statistic(metrics.StatisticsType.rmse)), 4),
         "sim3_scale": round(float(scale), 4),
         "_aligned": (est, ref),
+        "_lost": _lost_mask(used, est.timestamps),  # per aligned pose: its frame was not tracked (pose held)
     }
 
 
+def _lost_mask(used: Seq[VOResult], stamps: np.ndarray) -> np.ndarray:
+    """For each pose evo kept after association, whether its frame was lost (matched back by timestamp)."""
+    from vo_runtime.odometry import TRACKED_STATES
+
+    lost_stamps = np.array([r.timestamp for r in used if r.status not in TRACKED_STATES and r.timestamp is not None],
+                           float)
+    if lost_stamps.size == 0:
+        return np.zeros(len(stamps), bool)
+    return np.min(np.abs(np.asarray(stamps, float)[:, None] - lost_stamps[None, :]), axis=1) < 1e-6
+
+
 def plot_trajectory(path: str | Path, report: dict[str, Any], title: str) -> None:
-    """PNG of the aligned estimate against ground truth, top view (x-z, camera y points down)."""
+    """PNG of the aligned estimate against ground truth, seen from above (the two axes the ground truth spans
+    most), start and end marked, frames where the VO was lost (pose held) in another colour."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     est, ref = report["_aligned"]
+    lost = report.get("_lost", np.zeros(est.num_poses, bool))
+    spread = np.ptp(ref.positions_xyz, axis=0)
+    a, b = sorted(np.argsort(spread)[-2:])  # the plane the motion spans: x-z for a car, x-y for a drone's world
+    names = "xyz"
     fig, ax = plt.subplots(figsize=(6, 6), dpi=100)
-    ax.plot(ref.positions_xyz[:, 0], ref.positions_xyz[:, 2], "k-", label="ground truth")
-    ax.plot(est.positions_xyz[:, 0], est.positions_xyz[:, 2], "r.-", markersize=3, label="VO (Sim(3) aligned)")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("z [m]")
+    ax.plot(ref.positions_xyz[:, a], ref.positions_xyz[:, b], "k-", label="ground truth")
+    ax.plot(est.positions_xyz[:, a], est.positions_xyz[:, b], "r.-", markersize=3, linewidth=1,
+            label="VO (Sim(3) aligned)")
+    if np.any(lost):
+        ax.plot(est.positions_xyz[lost, a], est.positions_xyz[lost, b], "x", color="orange", markersize=6,
+                label=f"lost, pose held ({int(np.count_nonzero(lost))} frames)")
+    for positions in (ref.positions_xyz, est.positions_xyz):
+        ax.plot(*positions[0, [a, b]], "o", color="tab:green", markersize=8, markeredgecolor="k")
+        ax.plot(*positions[-1, [a, b]], "s", color="tab:blue", markersize=8, markeredgecolor="k")
+    ax.plot([], [], "o", color="tab:green", markeredgecolor="k", label="start")
+    ax.plot([], [], "s", color="tab:blue", markeredgecolor="k", label="end")
+    ax.set_xlabel(f"{names[a]} [m]")
+    ax.set_ylabel(f"{names[b]} [m]")
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set_title(f"{title}\nATE {report['ate_rmse_m']:.3f} m, RPE {report['rpe_rmse_m']:.3f} m")
-    ax.legend()
+    ax.set_title(f"{title}\nATE {report['ate_rmse_m']:.3f} m, RPE {report['rpe_rmse_m']:.3f} m", fontsize=10)
+    ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

@@ -104,6 +104,14 @@ class MonoVO:
         self._frame_size: tuple[int, int] | None = None  # (height, width) of the frames, fixed by the first one
         self._aligner: PatchAligner | None = None    # patch alignment, set up on the first frame
         self._detection_scale = 1.0                  # threshold pixels per raw detection's pixel (alignment)
+        self.last_observations: tuple[np.ndarray, np.ndarray | None] | None = None  # see `observations`
+
+    @property
+    def observations(self) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """The last processed frame's keypoints [N, 2] (frame pixels) and, when it was tracked, the landmark id
+        each one matched (-1: none; inliers of the pose only); None when it had no features. For pictures of
+        the run (`viz.py`): read it right after the frame's result."""
+        return self.last_observations
 
     @property
     def init_model(self) -> str | None:
@@ -199,6 +207,7 @@ class MonoVO:
         tracks are untouched, so the next good frame is matched to the last good one."""
         timestamp = self._checked_timestamp(timestamp)
         self._background.wait()
+        self.last_observations = None
         index = len(self.results)
         self._poses_cw.append(self._poses_cw[-1].copy() if self._poses_cw else np.eye(4))
         result = VOResult(index=index, timestamp=timestamp, pose=invert_pose(self._poses_cw[index]), status=SKIPPED,
@@ -237,9 +246,10 @@ class MonoVO:
         cfg = self.config
         mapped = self.map is not None
         result.status = LOST if (mapped or self._speed is not None) else INITIALISING
+        pixels = np.asarray(features.keypoints, np.float64)
+        self.last_observations = (pixels, None)
         if len(features) < cfg.min_features:
             return  # the next frame is matched to the last good one
-        pixels = np.asarray(features.keypoints, np.float64)
         frame = FrameData.build(self.camera.normalise(pixels), pixels, features.descriptors)
         if self._aligner is not None:
             frame.gray = to_gray_u8(image)
@@ -322,6 +332,7 @@ class MonoVO:
         result.status, result.tracked_by = status, outcome.source
         result.num_matches, result.num_inliers = outcome.matches, outcome.inliers
         result.num_landmarks = int(np.count_nonzero(outcome.landmark >= 0))
+        self.last_observations = (frame.pixels, outcome.landmark)
         if self._needs_keyframe(index, result.num_landmarks) or status == RELOCALISED:
             self._insert_keyframe(index, frame, outcome.landmark, result)
             result.keyframe = True
@@ -400,6 +411,7 @@ class MonoVO:
         self.map.add_landmarks(outcome.world, [(0, outcome.reference_rows), (1, outcome.current_rows)], outcome.angles)
         self._set_reference(1)
         self._previous = (current, self.map.keyframes[1].landmark)
+        self.last_observations = (current.pixels, self.map.keyframes[1].landmark)
         self._last_tracked = index
         self._lost_since = -1
         self._velocity = per_frame_motion(self._poses_cw[index] @ invert_pose(self._poses_cw[outcome.reference_index]),
