@@ -8,30 +8,28 @@ import argparse
 import json
 import math
 import sys
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
 from vo_runtime.artefact import ASPECT_TOLERANCE, default_artefact
 from vo_runtime.clitools import OneLineArgumentParser, run_guarded
 from vo_runtime.datasets import CAMERA_PRESETS, Sequence, open_sequence
-from vo_runtime.errors import VORuntimeError
+from vo_runtime.errors import FrameError, VORuntimeError
 from vo_runtime.features import FeatureExtractor, OrbExtractor, to_gray_u8
 from vo_runtime.lowlight import Darkening, parse_lowlight
+from vo_runtime.machine import check_thread_count
 from vo_runtime.odometry import SKIPPED, VisualOdometry, VOConfig, VOResult
-from vo_runtime.outputs import OutputKind, atomic_directory, check_replaceable
+from vo_runtime.outputs import OutputClaim, OutputKind, claim_output
 from vo_runtime.pipeline import StreamFrame
 from vo_runtime.sequence import read_frame
 from vo_runtime.trajectory import write_trajectory
 
-RUN_FILES = ("trajectory_tum.txt", "trajectory_kitti.txt", "frames.json", "summary.json", "trajectory.png")
-# What --force may replace: a directory this command wrote (its frames.json and summary.json) and nothing else.
-VO_RUN = OutputKind("a VO run written by the vo command",
-                    lambda path: (path / "frames.json").is_file() and (path / "summary.json").is_file(),
-                    lambda name: name in RUN_FILES)
+# What --force may replace: a directory this command wrote, as its listing records (vo_runtime.outputs).
+VO_RUN = OutputKind("vo-run", "a VO run written by the vo command")
 MAX_ORB_KEYPOINTS = 100_000
 MAX_EXTRACT_AHEAD = 16  # frames held decoded in memory ahead of the tracking
 
@@ -90,16 +88,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-keypoints", type=int, default=2000, help="ORB features per frame (default 2000)")
     parser.add_argument("--max-frames", type=int, help="stop after this many frames")
     parser.add_argument("--lowlight", help="dark, onboard, or GAMMA,SIGMA[,GAIN]: darken every frame (see below)")
+    parser.add_argument("--viz", action="store_true",
+                        help="with -o: viz.mp4 and viz/*.png, each frame (contrast-stretched) with its keypoints, the "
+                             "landmarks it tracked and its state (a PNG every 10th frame and every frame not tracked)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
 def _check_options(args: argparse.Namespace) -> None:
     """Refuse out-of-range numbers before anything is read or written."""
-    if args.threads < 1:
-        raise VORuntimeError(f"--threads must be at least 1, got {args.threads}")
-    if args.blas_threads < 1:
-        raise VORuntimeError(f"--blas-threads must be at least 1, got {args.blas_threads}")
+    check_thread_count(args.threads, "--threads")  # 1 to the cores there are
+    if args.viz and args.output is None:
+        raise VORuntimeError("--viz writes its pictures into the run folder: give -o DIR")
+    check_thread_count(args.blas_threads, "--blas-threads")
     least = VOConfig().min_features  # fewer features per frame can never be tracked
     if not least <= args.max_keypoints <= MAX_ORB_KEYPOINTS:
         raise VORuntimeError(f"--max-keypoints must be between {least} (the VO needs {least} features a frame) "
@@ -150,12 +151,16 @@ def _frame_loader(path: Path, lowlight: Darkening | None, index: int) -> Callabl
 
 def run(args: argparse.Namespace) -> int:
     _check_options(args)
+    # Held from the first check to the final swap; never inside the artefact (vo_runtime.outputs).
+    with claim_output(args.output, VO_RUN, args.force, [args.artefact]) if args.output is not None else nullcontext() as claim:
+        return _run(args, claim)
+
+
+def _run(args: argparse.Namespace, claim: OutputClaim | None) -> int:
     from vo_runtime.providers import parse_providers
 
     providers = parse_providers(args.providers)
     lowlight = parse_lowlight(args.lowlight)
-    if args.output is not None:
-        check_replaceable(args.output, VO_RUN, args.force)
     sequence = open_sequence(args.images, args.calib, args.camera)
     groundtruth = _load_groundtruth(args, sequence)
     frames = sequence.frames[: args.max_frames]
@@ -169,9 +174,11 @@ def run(args: argparse.Namespace) -> int:
     with threadpool_limits(limits=args.blas_threads, user_api="blas"):
         stream = (StreamFrame(_frame_loader(path, lowlight, index), sequence.timestamps[index], path.name)
                   for index, path in enumerate(frames))
+        observations = []  # per frame, for --viz: keypoints and the landmark each matched (float32 / int32)
         for _ in _progress(vo.stream(stream, args.extract_ahead, skip_wrong_size=True), len(frames),
                            not args.no_progress):
-            pass
+            if args.viz:
+                observations.append(_compact(vo.observations))
         vo.finish()
     used = [r for r in vo.results if r.status != SKIPPED]
     skipped = [r for r in vo.results if r.status == SKIPPED]
@@ -198,8 +205,9 @@ def run(args: argparse.Namespace) -> int:
         except VORuntimeError as exc:  # e.g. never initialised: keep the trajectory, say why there is no ATE
             summary["ate_rmse_m"] = None
             summary["evaluation_error"] = str(exc)
-    if args.output is not None:
-        _write_outputs(args.output, vo.results, frames, summary, report)
+    if claim is not None:
+        viz = (observations, lowlight) if args.viz else None
+        _write_outputs(claim, vo.results, frames, summary, report, viz)
     print(json.dumps(summary) if args.json else " ".join(f"{k}={v}" for k, v in summary.items()))
     if skipped:
         print(f"warning: skipped {len(skipped)} of {len(frames)} frames (pose held), first: {skipped[0].problem}",
@@ -213,7 +221,10 @@ def _frame_size(camera: Any, frames: list[Path]) -> tuple[int | None, int | None
     """(height, width) of the frames: the calibration's, or for one without a size (KITTI's) the first frame's."""
     if camera.height and camera.width:
         return camera.height, camera.width
-    first = cv2.imread(str(frames[0]), cv2.IMREAD_UNCHANGED) if frames else None
+    try:  # read_frame: a corrupt first frame prints no decoder line here (it is reported when it is skipped)
+        first = read_frame(frames[0]) if frames else None
+    except FrameError:
+        first = None
     return (None, None) if first is None else first.shape[:2]
 
 
@@ -245,10 +256,34 @@ def _frame_record(result: VOResult, path: Path) -> dict[str, Any]:
     return record
 
 
-def _write_outputs(output: Path, results: list[VOResult], frames: list[Path], summary: dict[str, Any],
-                   report: dict[str, Any] | None) -> None:
-    """Write everything into a staging directory beside ``output``, then swap it in."""
-    with atomic_directory(output) as staging:
+def _compact(observations: Any) -> Any:
+    if observations is None:
+        return None
+    keypoints, landmark = observations
+    return keypoints.astype(np.float32), None if landmark is None else landmark.astype(np.int32)
+
+
+def _write_viz(folder: Path, results: list[VOResult], frames: list[Path], observations: list, lowlight: Any) -> None:
+    """The --viz overlays: each frame read (and darkened) again, as the VO saw it."""
+    from vo_runtime.viz import VizWriter, draw_frame
+
+    writer = VizWriter(folder)
+    try:
+        for index, (result, path, seen) in enumerate(zip(results, frames, observations)):
+            try:
+                gray = to_gray_u8(_frame_loader(path, lowlight, index)())
+            except FrameError:
+                continue  # an unreadable frame was skipped; frames.json says why
+            keypoints, landmark = seen if seen is not None else (None, None)
+            writer.add(draw_frame(gray, result, keypoints, landmark), result)
+    finally:
+        writer.close()
+
+
+def _write_outputs(claim: OutputClaim, results: list[VOResult], frames: list[Path], summary: dict[str, Any],
+                   report: dict[str, Any] | None, viz: tuple | None = None) -> None:
+    """Write everything into a staging directory beside the claimed output, then swap it in (if unchanged)."""
+    with claim.writing() as staging:
         write_trajectory(staging / "trajectory_tum.txt", results, "tum")
         write_trajectory(staging / "trajectory_kitti.txt", results, "kitti")
         records = [_frame_record(result, path) for result, path in zip(results, frames)]
@@ -257,7 +292,11 @@ def _write_outputs(output: Path, results: list[VOResult], frames: list[Path], su
         if report is not None:
             from vo_runtime.evaluate import plot_trajectory
 
-            plot_trajectory(staging / "trajectory.png", report, f"{summary['sequence']} ({summary['features']})")
+            light = "normal light" if summary["lowlight"] is None else f"--lowlight {summary['lowlight']}"
+            plot_trajectory(staging / "trajectory.png", report,
+                            f"{Path(summary['sequence']).name} ({Path(summary['features']).name}, {light})")
+        if viz is not None:
+            _write_viz(staging, results, frames, *viz)
 
 
 def build_parser(prog: str = "python -m vo_runtime") -> argparse.ArgumentParser:
