@@ -3,6 +3,8 @@ pose and mapping.
 
     python bench/bench_vo.py                      # ORB, the hand-built Harris test artefact, the shipped artefact
     python bench/bench_vo.py --artefact out/cpu   # ... plus another exported network artefact
+    python bench/bench_vo.py --sequence ../shared/data/euroc_mh05_f000000-000199 --size native   # EuRoC's
+        752x480 frames as the camera gives them: ORB 2000 and the shipped artefact for that camera (it resizes)
 
 Every extractor runs the same frames (KITTI 07, resized to 320x240 with the camera scaled to match) in one
 process, one after the other, with onnxruntime, OpenCV and numpy's BLAS on one thread; ``--repeat`` runs
@@ -40,7 +42,6 @@ from vo_runtime.datasets import open_sequence  # noqa: E402
 from vo_runtime.odometry import TRACKED_STATES, VOConfig  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
 
-SIZE = (320, 240)  # width, height
 AHEAD = 2  # frames extracted ahead by `MonoVO.stream` (the default of `python -m vo_runtime`)
 
 
@@ -75,20 +76,24 @@ def main() -> int:
     parser.add_argument("--sequence", default=str(ROOT.parent / "shared/data/kitti_odom07_f000000-000159"))
     parser.add_argument("--frames", type=int, default=160)
     parser.add_argument("--repeat", type=int, default=3, help="runs per extractor; the fastest is reported")
+    parser.add_argument("--size", default="320x240", help="WIDTHxHEIGHT the frames are resized to first (default "
+                        "320x240), or native: as stored, the artefact resizing them (its cost counted)")
     args = parser.parse_args()
     cv2.setNumThreads(1)
     threadpool_limits(limits=1, user_api="blas")  # as `python -m vo_runtime` does by default (--blas-threads)
     sequence = open_sequence(args.sequence)
-    frames = [cv2.resize(im, SIZE, interpolation=cv2.INTER_AREA) for im in read_frames(sequence.frames[: args.frames])]
     height, width = next(read_frames(sequence.frames[:1])).shape[:2]
-    camera = sequence.camera.resized((width, height), SIZE)
+    size = (width, height) if args.size == "native" else tuple(int(v) for v in args.size.lower().split("x"))
+    frames = [im if size == (width, height) else cv2.resize(im, size, interpolation=cv2.INTER_AREA)
+              for im in read_frames(sequence.frames[: args.frames])]
+    camera = sequence.camera.resized((width, height), size)
     from test_vo_artefact import write_artefact
 
     with tempfile.TemporaryDirectory() as tmp:
-        default = FeatureExtractor(default_artefact(), threads=1)
-        runs = [("orb-1000", OrbExtractor(1000), False, 0),
+        default = FeatureExtractor(default_artefact(*size), threads=1)  # the shipped one for this aspect
+        runs = [("orb-1000", OrbExtractor(1000), False, 0), ("orb-2000", OrbExtractor(2000), False, 0),
                 ("harris-fixture", FeatureExtractor(write_artefact(Path(tmp) / "harris"), threads=1), False, 0),
-                ("default-artefact", default, False, 0),
+                (f"default {default.height}x{default.width}", default, False, 0),
                 ("default + thread", default, True, 0),  # mapping on a second thread
                 ("default + ahead", default, False, AHEAD)]  # the network 2 frames ahead on a second thread
         runs += [(Path(a).name, FeatureExtractor(a, threads=1), False, 0) for a in args.artefact]
@@ -96,12 +101,12 @@ def main() -> int:
         rows = [max((run(name, ex, frames, camera, sequence.timestamps, threaded, ahead) for _ in range(args.repeat)),
                     key=lambda row: row["fps"]) for name, ex, threaded, ahead in runs]
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"{len(frames)} frames of {Path(args.sequence).name} at {SIZE[1]}x{SIZE[0]}, 1 thread, best of "
+    print(f"{len(frames)} frames of {Path(args.sequence).name} at {size[0]}x{size[1]}, 1 thread, best of "
           f"{args.repeat}; load average {load:.1f} on {os.cpu_count()} CPUs; ms per frame")
-    print(f"{'extractor':<18}{'fps':>7}{'extract':>9}{'track':>7}{'p95':>7}{'match':>7}{'pose':>6}{'map':>6}"
+    print(f"{'extractor':<22}{'fps':>7}{'extract':>9}{'track':>7}{'p95':>7}{'match':>7}{'pose':>6}{'map':>6}"
           f"{'kf':>5}{'tracked':>10}")
     for r in rows:
-        print(f"{r['name']:<18}{r['fps']:>7.1f}{r['extract_ms']:>9.2f}{r['track_ms']:>7.2f}{r['track_p95']:>7.1f}"
+        print(f"{r['name']:<22}{r['fps']:>7.1f}{r['extract_ms']:>9.2f}{r['track_ms']:>7.2f}{r['track_p95']:>7.1f}"
               f"{r['match_ms']:>7.2f}{r['pose_ms']:>6.2f}{r['map_ms']:>6.2f}{r['keyframes']:>5}"
               f"{r['tracked']:>6}/{r['frames']}")
     return 0

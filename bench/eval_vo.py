@@ -1,20 +1,24 @@
-"""One evaluation of the VO on every dev sequence: frames tracked, ATE and RPE (evo, Sim(3)), FPS.
+"""One table of the VO on every dev sequence: frames tracked and lost, ATE and RPE (evo, Sim(3)), FPS on one core.
 
-    python bench/eval_vo.py -o runs/vo_eval                    # default artefact and ORB, normal and low light
+    python bench/eval_vo.py --workers 2 -o runs/vo_eval    # KITTI 06, KITTI 07, TUM fr2 desk, EuRoC MH_05; the
+                                                            # shipped artefact and ORB; normal, dark, onboard light
     python bench/eval_vo.py --features orb --light normal      # a subset
-    python bench/eval_vo.py --set keyframe_max_gap=6 --keypoints 500,1000,2000   # sensitivity
+    python bench/eval_vo.py --set keyframe_max_gap=6 --keypoints 500,1000,2000 --starts 0   # sensitivity
     python bench/eval_vo.py --size 320x240                      # every frame resized first (the speed setting)
-    python bench/eval_vo.py --starts 0,25,50,75,100 --light normal   # each sequence from several first frames
+    python bench/eval_vo.py --starts 0,25,50 --light normal     # each sequence from these first frames
 
-Single runs of 50-160 frame sequences move by tens of centimetres with any setting (docs/vo.md), so
-``--starts`` runs each sequence again from later first frames (starts within 20 frames of the end are
-left out) and adds a summary: the geometric mean of the ATE over the starts and the least tracked share.
+Single runs of 20-200 frame clips move by tens of centimetres with any setting (docs/vo.md), so by default
+(``--starts study``) each sequence runs from several first frames (`STARTS`, the same lists as
+bench/vo_settings.py) and the summary gives per sequence, features and light the geometric mean and the worst
+ATE over the starts, the least tracked share and the frames lost after initialisation.
 
-Runs each (sequence, features, light) in this process, one after the other, at the sequences' own
-resolution (the artefact resizes to its input), with onnxruntime and OpenCV on one thread. Writes
-``table.md`` (the table docs/vo.md keeps), ``results.json`` and one trajectory plot per run into ``-o``.
-"Tracked" counts frames with a pose from tracking, relocalisation or re-initialisation, over the frames
-after the first initialisation. FPS counts extraction and tracking, not reading or darkening the frames.
+Every run: the sequence at its own resolution (the artefact resizes to its input; by default the shipped
+artefact for that camera's aspect), onnxruntime, OpenCV and BLAS on one thread, one process per run
+(``--workers`` side by side: run it on an otherwise idle machine, or the FPS mean little). Writes ``table.md``
+(the tables docs/vo.md keeps), ``results.json`` and one trajectory plot per run (start and end marked) into
+``-o``. "Tracked" counts frames with a pose from tracking, relocalisation or re-initialisation, over the frames
+after the first initialisation; "lost" the rest of those. FPS counts extraction and tracking, not reading or
+darkening the frames.
 """
 from __future__ import annotations
 
@@ -22,6 +26,7 @@ import argparse
 import json
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -35,13 +40,24 @@ from vo_runtime.artefact import default_artefact  # noqa: E402
 from vo_runtime.datasets import open_sequence  # noqa: E402
 from vo_runtime.errors import VORuntimeError  # noqa: E402
 from vo_runtime.evaluate import evaluate, plot_trajectory, sequence_groundtruth  # noqa: E402
-from vo_runtime.features import to_gray_u8  # noqa: E402
+from vo_runtime.features import KeypointBudget, to_gray_u8  # noqa: E402
 from vo_runtime.lowlight import PRESETS  # noqa: E402
 from vo_runtime.mapping import MappingConfig  # noqa: E402
 from vo_runtime.odometry import INITIALISING, SKIPPED, TRACKED_STATES  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
 
-SEQUENCES = ("kitti_odom06_f000000-000050", "kitti_odom07_f000000-000159", "tum_fr2_desk_snippet")
+SEQUENCES = ("kitti_odom06_f000000-000050", "kitti_odom07_f000000-000159", "tum_fr2_desk_snippet",
+             "euroc_mh05_f000000-000199")
+SHORT_NAMES = {"kitti_odom06_f000000-000050": "KITTI 06", "kitti_odom07_f000000-000159": "KITTI 07",
+               "tum_fr2_desk_snippet": "TUM fr2 desk", "euroc_mh05_f000000-000199": "EuRoC MH_05"}
+# First frames per sequence: single runs of these 20-200-frame clips move by tens of centimetres with any change
+# (docs/vo.md), so every figure is a geometric mean over several starts. Normal light, and each dark preset.
+STARTS = {
+    "normal": {"kitti_odom07_f000000-000159": range(0, 131, 10), "kitti_odom06_f000000-000050": range(0, 31, 5),
+               "tum_fr2_desk_snippet": [0], "euroc_mh05_f000000-000199": range(0, 101, 20)},
+    "low": {"kitti_odom07_f000000-000159": range(0, 101, 25), "kitti_odom06_f000000-000050": range(0, 21, 10),
+            "tum_fr2_desk_snippet": [0], "euroc_mh05_f000000-000199": range(0, 101, 20)},
+}
 # normal light; "low": the global --lowlight dark preset (2,3,0.3); "onboard": a light riding on the camera
 LIGHTS = {"normal": None, "low": PRESETS["dark"], "onboard": PRESETS["onboard"]}
 
@@ -55,7 +71,8 @@ def parse_overrides(items: list[str]) -> dict:
 
 
 def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, overrides: dict, artefact: Path,
-            plot_dir: Path | None, size: tuple[int, int] | None = None, start: int = 0) -> dict:
+            plot_dir: Path | None, size: tuple[int, int] | None = None, start: int = 0,
+            budget: tuple[int, tuple[int, int] | None] | None = None) -> dict:
     sequence = open_sequence(sequence_dir)
     frames, stamps = sequence.frames[start:], sequence.timestamps[start:]
     camera = sequence.camera
@@ -63,6 +80,8 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, overr
         height, width = next(read_frames(sequence.frames[:1])).shape[:2]
         camera = camera.resized((width, height), size)
     extractor = OrbExtractor(keypoints) if features == "orb" else FeatureExtractor(artefact, threads=1)
+    if budget is not None:  # at most N keypoints a frame, spread over a grid (KeypointBudget)
+        extractor = KeypointBudget(extractor, *budget)
     top = {k: v for k, v in overrides.items() if "." not in k}
     mapping = {k.split(".", 1)[1]: v for k, v in overrides.items() if k.startswith("mapping.")}
     config = VOConfig(**top, mapping=MappingConfig(**mapping))
@@ -100,33 +119,61 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, overr
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| sequence | features | light | tracked after init | states | ATE m | RPE m | FPS | track ms (median) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| sequence | features | light | initialised at | tracked after init | states | ATE m | RPE m | FPS | "
+             "track ms (median) |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         states = ", ".join(f"{v} {k}" for k, v in r["states"].items())
         ate = "-" if r["ate"] is None else f"{r['ate']:.3f}"
         rpe = "-" if r["rpe"] is None else f"{r['rpe']:.3f}"
         feats = r["features"] + (f" {r['keypoints']}" if r["keypoints"] else "")
-        lines.append(f"| {r['sequence']} | {feats} | {r['light']} | {r['tracked_pct']:.0f} % ({r['tracked']}/"
+        lines.append(f"| {r['sequence']} | {feats} | {r['light']} | {r['initialised_at']} | {r['tracked_pct']:.0f} % ({r['tracked']}/"
                      f"{r['after_init']}) | {states} | {ate} | {rpe} | {r['fps']:.0f} | {r['track_ms']:.1f} |")
     return "\n".join(lines)
 
 
+def geometric_mean(values: list[float]) -> float:
+    return float(np.exp(np.mean(np.log(np.maximum(values, 1e-6)))))
+
+
 def summary(rows: list[dict]) -> str:
-    """Per sequence, features and light: ATE geometric mean over the starts, and the least tracked share."""
-    lines = ["| sequence | features | light | runs | ATE m (geometric mean) | ATE m per start | least tracked |",
-             "|---|---|---|---|---|---|---|"]
+    """Per sequence, features and light over the starts: ATE geometric mean and worst, RPE geometric mean,
+    the least tracked share, frames lost after initialisation, FPS (median)."""
+    lines = ["| sequence | features | light | runs | ATE m (geo. mean) | worst ATE m | RPE m (geo. mean) | "
+             "least tracked after init | lost frames | initialised at (median, worst) | FPS (1 core) | ATE m per start |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
         groups.setdefault((r["name"], r["features"], r["keypoints"], r["light"]), []).append(r)
     for (name, feats, keypoints, light), group in groups.items():
         ates = [r["ate"] for r in group]
-        mean = "-" if None in ates else f"{float(np.exp(np.mean(np.log(np.maximum(ates, 1e-6))))):.3f}"
-        each = ", ".join("-" if a is None else f"{a:.2f}" for a in ates)
+        failed = None in ates  # never initialised: no ATE; the row says so instead of a mean of the others
+        mean = "-" if failed else f"{geometric_mean(ates):.3f}"
+        worst = "-" if failed else f"{max(ates):.3f}"
+        rpe = "-" if None in [r["rpe"] for r in group] else f"{geometric_mean([r['rpe'] for r in group]):.3f}"
+        each = ", ".join("-" if a is None else f"{a:.3f}" for a in ates)
         label = feats + (f" {keypoints}" if keypoints else "")
         least = min(r["tracked_pct"] for r in group)
-        lines.append(f"| {name} | {label} | {light} | {len(group)} | {mean} | {each} | {least:.0f} % |")
+        lost = sum(r["after_init"] - r["tracked"] for r in group)
+        fps = float(np.median([r["fps"] for r in group]))
+        inits = [r["initialised_at"] for r in group]
+        lines.append(f"| {SHORT_NAMES.get(name, name)} | {label} | {light} | {len(group)} | {mean} | {worst} | {rpe} | "
+                     f"{least:.0f} % | {lost} | {int(np.median(inits))}, {max(inits)} | {fps:.0f} | {each} |")
     return "\n".join(lines)
+
+
+def study_starts(name: str, light: str, length: int) -> list[int]:
+    """The first frames of the settings study (`STARTS`), or 0 for a sequence it does not list."""
+    starts = STARTS["normal" if light == "normal" else "low"].get(name, [0])
+    return [v for v in starts if v == 0 or v < length - 20]
+
+
+def _run_job(job: tuple) -> dict:
+    """One run in a worker process (one thread, as the main process)."""
+    cv2.setNumThreads(1)
+    began = time.perf_counter()
+    row = run_one(*job)
+    row["wall_s"] = round(time.perf_counter() - began, 1)
+    return row
 
 
 def main() -> int:
@@ -134,37 +181,56 @@ def main() -> int:
     parser.add_argument("--data", type=Path, default=ROOT.parent / "shared/data")
     parser.add_argument("--sequences", default=",".join(SEQUENCES))
     parser.add_argument("--features", default="artefact,orb", help="artefact and/or orb")
-    parser.add_argument("--artefact", type=Path, default=None, help="default: the shipped artefact")
-    parser.add_argument("--light", default="normal,low", help="normal and/or low (--lowlight 2,3,0.3)")
+    parser.add_argument("--artefact", type=Path, default=None,
+                        help="default: the shipped artefact for each sequence's camera (default_artefact)")
+    parser.add_argument("--light", default="normal,low,onboard",
+                        help="normal, low (--lowlight dark: 2,3,0.3) and/or onboard (--lowlight onboard)")
     parser.add_argument("--keypoints", default="2000", help="ORB features per frame; a list for a sensitivity table")
     parser.add_argument("--set", action="append", default=[], help="VOConfig field=value (JSON value; mapping.FIELD for MappingConfig), repeatable")
     parser.add_argument("--size", help="WIDTHxHEIGHT: resize every frame first (e.g. 320x240); default: as stored")
-    parser.add_argument("--starts", default="0", help="first frames to run each sequence from, e.g. 0,25,50")
+    parser.add_argument("--starts", default="study",
+                        help="first frames to run each sequence from, e.g. 0,25,50; study (default): the start lists of "
+                             "bench/vo_settings.py, per sequence and light")
+    parser.add_argument("--workers", type=int, default=1, help="runs in parallel, one process and thread each")
+    parser.add_argument("--budget", help="N or N,COLUMNSxROWS: keep at most N keypoints a frame (any extractor), "
+                        "spread over a grid of cells when given (round-robin by rank in the cell)")
+    parser.add_argument("--summary-only", action="store_true", help="print the summary, not every run's row")
     parser.add_argument("-o", "--output", type=Path)
     args = parser.parse_args()
     cv2.setNumThreads(1)
-    artefact = args.artefact or default_artefact()
     overrides = parse_overrides(args.set)
+    budget = None
+    if args.budget:
+        count, _, grid = args.budget.partition(",")
+        budget = (int(count), tuple(int(v) for v in grid.lower().split("x")) if grid else None)
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
     if args.output is not None:
         args.output.mkdir(parents=True, exist_ok=True)
-    starts = [int(v) for v in args.starts.split(",")]
-    rows = []
+    jobs = []
     for name in args.sequences.split(","):
-        length = len(open_sequence(args.data / name).frames)
+        sequence = open_sequence(args.data / name)
+        height, width = next(read_frames(sequence.frames[:1])).shape[:2]
+        artefact = args.artefact or default_artefact(*(size or (width, height)))
         for features in args.features.split(","):
             for light in args.light.split(","):
+                starts = (study_starts(name, light, len(sequence)) if args.starts == "study" else
+                          [v for v in map(int, args.starts.split(",")) if v == 0 or v < len(sequence) - 20])
                 for keypoints in [int(k) for k in args.keypoints.split(",")]:
-                    for first in [v for v in starts if v == 0 or v < length - 20]:
-                        began = time.perf_counter()
-                        row = run_one(args.data / name, features, light, keypoints, overrides, artefact,
-                                      args.output, size, first)
-                        row["wall_s"] = round(time.perf_counter() - began, 1)
-                        rows.append(row)
-                        print(table([row]).splitlines()[-1], flush=True)
+                    jobs += [(args.data / name, features, light, keypoints, overrides, artefact, args.output, size, first,
+                              budget) for first in starts]
+    if args.workers > 1:
+        with ProcessPoolExecutor(args.workers) as pool:
+            rows = list(pool.map(_run_job, jobs))
+    else:
+        rows = []
+        for job in jobs:
+            rows.append(_run_job(job))
+            print(table([rows[-1]]).splitlines()[-1], flush=True)
+    began_all = sum(r["wall_s"] for r in rows)
     text = table(rows)
-    if len(starts) > 1:
-        text += "\n\n" + summary(rows)
+    if len(rows) > len({(r["name"], r["features"], r["light"], r["keypoints"]) for r in rows}):
+        text = summary(rows) + ("" if args.summary_only else "\n\n" + text)
+    print(f"{len(rows)} runs ({began_all:.0f} s of runs), settings {overrides or 'default'}")
     print(text)
     if args.output is not None:
         (args.output / "table.md").write_text(text + "\n")
