@@ -158,3 +158,23 @@ def test_bad_groundtruth_and_missing_files(tmp_path, capsys):
 def _write(path, text):
     path.write_text(text)
     return path
+
+
+def test_the_shipped_artefact_is_chosen_by_the_cameras_aspect(tmp_path, monkeypatch):
+    """A 4:3 camera (and one of no known aspect) gets the 240x320 artefact; a camera whose aspect another shipped
+    artefact has gets that one (a stand-in manifest at 240x376 for EuRoC's 752x480)."""
+    import json as json_module
+
+    import vo_runtime.artefact as artefact
+
+    wide = tmp_path / "wide"
+    wide.mkdir()
+    manifest = json_module.loads((artefact.DEFAULT_ARTEFACT_DIR / "manifest.json").read_text())
+    manifest["input"]["shape"] = [1, 1, 240, 376]
+    (wide / "manifest.json").write_text(json_module.dumps(manifest))
+    assert artefact.default_artefact(752, 480) == artefact.DEFAULT_ARTEFACT_DIR  # none shipped for it: the 4:3 one
+    monkeypatch.setattr(artefact, "WIDE_ARTEFACT_DIR", wide)
+    assert artefact.default_artefact(752, 480) == wide
+    assert artefact.default_artefact(640, 480) == artefact.DEFAULT_ARTEFACT_DIR
+    assert artefact.default_artefact(1226, 370) == artefact.DEFAULT_ARTEFACT_DIR  # KITTI: neither fits, the 4:3 one
+    assert artefact.default_artefact() == artefact.DEFAULT_ARTEFACT_DIR
