@@ -10,16 +10,21 @@ import argparse
 import importlib
 import sys
 
-from export.errors import ExportError
-from models.errors import ModelError
-from profiles.errors import ProfileError
 from toolkit import __version__
 from toolkit.errors import ToolkitError
 from vo_runtime.clitools import OneLineArgumentParser, run_guarded
 from vo_runtime.errors import VORuntimeError
 
-# Each layer's own bad-input errors, printed as one `error:` line with exit 2 (the layers never import toolkit).
-USER_ERRORS = (ToolkitError, VORuntimeError, ProfileError, ModelError, ExportError)
+
+def user_errors() -> tuple[type[Exception], ...]:
+    """Each layer's own bad-input errors, printed as one `error:` line with exit 2 (the layers never import
+    toolkit). Imported only once the toolkit extra is known to be there: `models` imports torch."""
+    from export.errors import ExportError
+    from models.errors import ModelError
+    from profiles.errors import ProfileError
+
+    return ToolkitError, VORuntimeError, ProfileError, ModelError, ExportError
+
 
 # Order is the order shown by `toolkit --help`.
 COMMAND_MODULES: list[str] = [
@@ -84,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     if hasattr(sys.stdout, "reconfigure") and not sys.stdout.isatty():
         # a log file or a pipe: each line when it is printed, not a buffer's worth at exit
         sys.stdout.reconfigure(line_buffering=True)
-    return run_guarded(build_parser(), argv, USER_ERRORS)
+    return run_guarded(build_parser(), argv, user_errors())
 
 
 if __name__ == "__main__":
