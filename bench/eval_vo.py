@@ -112,7 +112,9 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, overr
         row["ate"], row["rpe"] = report["ate_rmse_m"], report["rpe_rmse_m"]
         if plot_dir is not None:
             name = f"{sequence_dir.name}{f'_from{start}' if start else ''}_{row['features']}_{light}.png"
-            plot_trajectory(plot_dir / name, report, f"{sequence_dir.name} ({row['features']}, {light} light)")
+            plot_trajectory(plot_dir / name, report,
+                            f"{SHORT_NAMES.get(sequence_dir.name, sequence_dir.name)} from frame {start} "
+                            f"({row['features']}, {light} light)")
     except VORuntimeError as exc:
         row["error"] = str(exc)
     return row

@@ -172,7 +172,8 @@ def test_the_shipped_artefact_is_chosen_by_the_cameras_aspect(tmp_path, monkeypa
     manifest = json_module.loads((artefact.DEFAULT_ARTEFACT_DIR / "manifest.json").read_text())
     manifest["input"]["shape"] = [1, 1, 240, 376]
     (wide / "manifest.json").write_text(json_module.dumps(manifest))
-    assert artefact.default_artefact(752, 480) == artefact.DEFAULT_ARTEFACT_DIR  # none shipped for it: the 4:3 one
+    monkeypatch.setattr(artefact, "WIDE_ARTEFACT_DIR", tmp_path / "not-installed")
+    assert artefact.default_artefact(752, 480) == artefact.DEFAULT_ARTEFACT_DIR  # none for it: the 4:3 one
     monkeypatch.setattr(artefact, "WIDE_ARTEFACT_DIR", wide)
     assert artefact.default_artefact(752, 480) == wide
     assert artefact.default_artefact(640, 480) == artefact.DEFAULT_ARTEFACT_DIR

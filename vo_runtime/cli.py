@@ -64,7 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keypoints from the artefact (default) or from OpenCV ORB, for comparison")
     parser.add_argument("--artefact", type=Path,
                         help="artefact directory written by `toolkit export` (default: the shipped featurenet-relu x86-cpu "
-                        "artefact for the camera's aspect: 240x320 for 4:3 and any other, 360x560 for 752x480-like "
+                        "artefact for the camera's aspect: 240x320 for 4:3 and any other, 480x752 for 752x480-like "
                         "cameras such as EuRoC's)")
     parser.add_argument("--images", required=True, type=Path, help="sequence folder or folder of images")
     parser.add_argument("--calib", help=f"KITTI calib.txt, JSON intrinsics, or a preset ({', '.join(CAMERA_PRESETS)})")
