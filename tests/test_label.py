@@ -153,3 +153,14 @@ def test_bad_input_is_one_line_and_exit_2(image_folder: Path, tmp_path: Path, ca
         progress=False,
     )
     assert (summary.labelled, summary.unreadable) == (1, 2)
+
+
+def test_a_long_labelling_run_is_announced(image_folder: Path, tmp_path: Path, monkeypatch, capsys) -> None:
+    # The cost scales with --num-homographies: the README's tour once started a 24 h run without a word.
+    monkeypatch.setattr(cmd_label, "LONG_RUN_S", 0.0)
+    monkeypatch.setattr(cmd_label, "ESTIMATE_AFTER", 1)
+    assert label(image_folder, tmp_path / "store", homographies=2) == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1 and "to label 2 more images at" in warnings[0] and "(2 teacher runs an image)" in warnings[0]
+    assert cmd_label.cost_warning(50.0, 1750, cmd_label.AdaptationConfig(num_homographies=100), torch.device("cpu")) \
+        .startswith("warning: about 24h18m to label 1750 more images at 0.02 images/s on cpu")

@@ -52,3 +52,31 @@ def test_broken_chains_resume_from_the_reference_while_they_die():
 def test_healthy_chains_are_left_alone():
     _, tracks, from_reference = run(survivors=150)  # 150 >= 90: not dying
     assert np.count_nonzero(from_reference) == 150 and not tracks.resumed.any()
+
+
+def _two_views(consistent: float) -> tuple[Initialiser, list[np.ndarray]]:
+    """Tracks between two views of a rigid scene 0.5 units apart, of which only the share ``consistent`` follow
+    the scene (the rest land anywhere: broken matches, as in a blurred take-off); the initialiser holds them."""
+    rng = np.random.default_rng(11)
+    world = np.column_stack([rng.uniform(-3, 3, N), rng.uniform(-2, 2, N), rng.uniform(4, 8, N)])
+    angle = np.radians(3.0)
+    rotation = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    moved = world @ rotation.T + (0.5, 0.05, 0.1)
+    reference, current = world[:, :2] / world[:, 2:], moved[:, :2] / moved[:, 2:]
+    bad = rng.permutation(N)[: int(round((1 - consistent) * N))]
+    current[bad] = rng.uniform(current.min(axis=0), current.max(axis=0), size=(len(bad), 2))
+    config = VOConfig(init_min_inlier_share=0.5, init_min_median_deg=0.0)
+    initialiser = Initialiser(config, focal=500.0)
+    initialiser.restart(0, FrameData.build(reference, 500.0 * reference, DESCRIPTORS))
+    initialiser.add(1, FrameData.build(current, 500.0 * current, DESCRIPTORS))
+    return initialiser, [np.eye(4), np.eye(4)]
+
+
+def test_a_two_view_model_explaining_too_few_tracks_is_refused():
+    initialiser, poses = _two_views(consistent=0.8)
+    result = initialiser.try_initialise(1, poses, None)
+    assert result is not None and result.inliers >= 0.5 * N
+    initialiser, poses = _two_views(consistent=0.35)  # a fit to this explains at most ~40 % of the tracks
+    assert initialiser.try_initialise(1, poses, None) is None
+    initialiser.config.init_min_inlier_share = 0.0  # the gate off: the same tracks make a map
+    assert initialiser.try_initialise(1, poses, None) is not None

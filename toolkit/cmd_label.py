@@ -9,13 +9,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from tqdm import tqdm
 
-from toolkit.atomic import check_output_path
+from toolkit.atomic import locked_output_dir
 from toolkit.errors import ToolkitError
 from toolkit.sizes import parse_size
+from vo_runtime.machine import available_cores, check_thread_count
 from toolkit.training.adaptation import AdaptationConfig, label_image, label_image_with_descriptors
 from toolkit.training.label_store import LabelStore, find_images, read_image
+from vo_runtime.progress import format_duration, progress_bar
 
 EPILOG = """examples:
   toolkit label --teacher alike-n --images ../shared/data/train_images --out labels/alike-n
@@ -42,6 +43,18 @@ class LabelSummary:
 
 
 MAX_HOMOGRAPHIES = 1000  # warps per image; the paper's adaptation used 100
+LONG_RUN_S = 3600.0  # an estimate past an hour gets a warning line (a 24 h run once started without one)
+ESTIMATE_AFTER = 3  # images labelled before the estimate is trusted
+
+
+def cost_warning(seconds_per_image: float, remaining: int, config: AdaptationConfig, device: torch.device) -> str | None:
+    """One warning line when labelling the ``remaining`` images will take longer than `LONG_RUN_S`, else None."""
+    estimate = seconds_per_image * remaining
+    if estimate < LONG_RUN_S:
+        return None
+    return (f"warning: about {format_duration(estimate)} to label {remaining} more images at {1 / seconds_per_image:.2g} "
+            f"images/s on {device.type} ({config.num_homographies} teacher runs an image); fewer --num-homographies, "
+            "a GPU or fewer images cut it, and a stopped run continues where it stopped")
 
 
 def pick_device(name: str | None = None) -> torch.device:
@@ -93,11 +106,16 @@ def label_folder(
     progress: bool = True,
 ) -> LabelSummary:
     """Label every readable image under ``images`` into the store at ``out`` (resumable)."""
-    from models.teachers import build_teacher
-
     check_config(config)
     out = Path(out)
-    check_output_path(out)
+    with locked_output_dir(out):  # one labelling run per store at a time
+        return _label_into(teacher_name, images, out, config, device, progress)
+
+
+def _label_into(teacher_name: str, images: str | Path, out: Path, config: AdaptationConfig,
+                device: torch.device | None, progress: bool) -> LabelSummary:
+    from models.teachers import build_teacher
+
     files = find_images(images)
     if not files:
         raise ToolkitError(f"no image files in {images}")
@@ -113,8 +131,8 @@ def label_folder(
     root = Path(images)
     labelled = skipped = unreadable = 0
     start = time.perf_counter()
-    # disable=None: no bar when stderr is not a terminal, so logs and errors stay line by line
-    bar = tqdm(files, desc="label", unit="img", file=sys.stderr, disable=None if progress else True)
+    # a bar on a terminal, a line with the ETA every few seconds in a log (vo_runtime.progress)
+    bar = progress_bar(files, desc="label", unit="img", enabled=progress)
     try:
         for path in bar:
             loaded = read_image(path, config.size)
@@ -137,6 +155,11 @@ def label_folder(
                 keypoints, scores = label_image(teacher, image, config, generator)
                 store.put(sha256, relative, keypoints.numpy(), scores.numpy())
             labelled += 1
+            if labelled == ESTIMATE_AFTER:
+                remaining = len(files) - labelled - skipped - unreadable
+                warning = cost_warning((time.perf_counter() - start) / labelled, remaining, config, image.device)
+                if warning:
+                    print(warning, file=sys.stderr)
             if labelled % 25 == 0:
                 store.save_index()
             bar.set_postfix(new=labelled, done_before=skipped, unreadable=unreadable)
@@ -158,14 +181,13 @@ def label_folder(
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.threads < 1:
-        raise ToolkitError("--threads must be at least 1")
+    threads = min(2, available_cores()) if args.threads is None else check_thread_count(args.threads, "--threads", ToolkitError)
     config = AdaptationConfig(
         num_homographies=args.num_homographies, size=parse_size(args.size), max_keypoints=args.max_keypoints,
         nms_radius=args.nms_radius, descriptor_stride=4 if args.descriptors else 0,
     )
     device = pick_device(args.device)
-    torch.set_num_threads(args.threads)
+    torch.set_num_threads(threads)
     summary = label_folder(args.teacher, args.images, args.out, config, device)
     print(
         f"labelled {summary.labelled} images ({summary.images_per_second:.2f} images/s), "
@@ -197,8 +219,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="also keep the teacher's dense descriptor map at 1/4 resolution (ALIKE teachers; needed by the distill recipe)",
     )
     parser.add_argument(
-        "--threads", type=int, default=2,
-        help="CPU threads for the teacher (default 2; use 1 when another job shares a 2-core machine)",
+        "--threads", type=int, default=None,
+        help="CPU threads for the teacher, at most the cores (default 2, or 1 on one core; use 1 when another job "
+        "shares a 2-core machine)",
     )
     parser.add_argument("--device", default=None, help="cpu or cuda[:N] (default: cuda when available)")
     parser.set_defaults(func=run)

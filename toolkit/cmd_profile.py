@@ -10,6 +10,7 @@ from toolkit.sizes import parse_size
 from profiles import TargetProfile, load_profile
 from toolkit.atomic import OutputClaim
 from toolkit.errors import ToolkitError
+from vo_runtime.machine import check_thread_count
 
 EXAMPLES = """examples:
   toolkit profile                                         # the shipped model vs SuperPoint, both targets, 240x320
@@ -68,8 +69,7 @@ def _profiles(target: str) -> list[TargetProfile]:
 
 
 def _check_args(args: argparse.Namespace) -> None:
-    if args.threads < 1:
-        raise ToolkitError("--threads must be at least 1")
+    check_thread_count(args.threads, "--threads", ToolkitError)
     if args.repeats < 1 or args.warmup < 0:
         raise ToolkitError("--repeats must be at least 1 and --warmup at least 0")
 
@@ -148,7 +148,7 @@ def _check_calibration_target(path: Path) -> None:
 
 
 def _run_calibration(args: argparse.Namespace, profiles: list[TargetProfile]) -> int:
-    from toolkit.profiling.calibration import calibrate
+    from toolkit.profiling.calibration import calibrate, leave_one_out_note
     from toolkit.profiling.profile import target_graph
     from toolkit.profiling.report import format_table
     from vo_runtime.atomic_file import write_json_atomic
@@ -176,5 +176,7 @@ def _run_calibration(args: argparse.Namespace, profiles: list[TargetProfile]) ->
     print(format_table(["network", "measured ms", "predicted ms (leave-one-out)", "error", "predicted ms (all data)"], rows))
     mean_abs = sum(abs(e["relative_error"]) for e in result.leave_one_out) / len(result.leave_one_out)
     print(f"mean absolute leave-one-out error: {mean_abs:.1%}")
+    for note in filter(None, map(leave_one_out_note, result.leave_one_out)):
+        print(note)
     print(f"wrote {path}")
     return 0

@@ -18,7 +18,6 @@ import contextlib
 import io
 import json
 import os
-import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -26,11 +25,12 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
-from tqdm import tqdm
 
 from models.checkpoint import build_model, save_checkpoint
 from models.deform import set_deform_strategy
 from toolkit.errors import ToolkitError
+from vo_runtime.errors import first_line
+from vo_runtime.machine import check_thread_count, physical_memory_bytes
 from toolkit.training.config import TrainConfig, config_from_dict, read_config_file  # noqa: F401 (re-exported)
 from toolkit.training.distill_losses import DescriptorProjection, distill_loss
 from toolkit.training.distill_pairs import DistillPairs
@@ -39,7 +39,9 @@ from toolkit.training.losses import superpoint_loss
 from toolkit.training.pairs import StepBatchSampler, WarpedPairs, load_labelled_images, split_train_val
 from toolkit.training.run_log import append_csv, plot_loss_curve, plot_validation_curve, truncate_csv
 from toolkit.training.validation import validate
+from vo_runtime.progress import progress_bar
 
+STATE_NAME = "train_state.pt"
 LOG_FIELDS = ["step", "loss", "detector_loss", "descriptor_loss", "lr", "seconds_per_step"]
 VAL_FIELDS = ["step", "val_loss", "repeatability", "localisation_error", "nn_map", "matching_score"]
 
@@ -171,24 +173,53 @@ def resolve_config(
         if not config_path.is_file():
             raise ToolkitError(f"cannot resume: {run} holds no training run (no config.json)")
         try:
-            config = config_from_dict(json.loads(config_path.read_text())["train"])
-        except (OSError, ValueError, KeyError) as exc:
-            raise ToolkitError(f"cannot resume: {config_path} is unreadable ({exc})") from None
+            config = config_from_dict(json.loads(config_path.read_text(encoding="utf-8"))["train"])
+        except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
+            raise ToolkitError(f"cannot resume: {config_path} is unreadable ({first_line(exc)})") from None
         if batch is not None and batch != config.batch:
             raise ToolkitError(f"cannot change --batch on --resume (the run in {run} uses {config.batch})")
-    elif config_path.exists() or (run / "train_state.pt").exists():
-        raise ToolkitError(f"{run} already holds a training run: pass --resume to continue it, or choose another --out")
+    else:
+        check_new_run_folder(run)
     if steps is not None:
         config.steps = steps
     if batch is not None:
         config.batch = batch
     if config.steps < 1 or config.batch < 1:
         raise ToolkitError("--steps and --batch must be at least 1")
+    if config.threads:  # 0: torch's own choice
+        check_thread_count(config.threads, "threads", ToolkitError)
     try:  # fail before any process group or file exists
         build_model(config.arch, config.model)
     except (TypeError, ValueError) as exc:
         raise ToolkitError(f"config model settings do not fit arch {config.arch}: {exc}") from None
     return config
+
+
+def check_new_run_folder(run: Path) -> None:
+    """A new run starts only in an absent or empty folder: a run folder is continued with --resume (also one
+    stopped before its first checkpoint, which then starts again from step 0), and any other folder is the
+    user's, never written into."""
+    if run.is_symlink() or (run.exists() and not run.is_dir()):
+        raise ToolkitError(f"--out {run} exists and is not a folder")
+    if not run.exists() or not any(run.iterdir()):
+        return
+    if (run / "config.json").exists() or (run / STATE_NAME).exists():
+        stopped = "" if (run / STATE_NAME).exists() else " (stopped before its first checkpoint: --resume starts it again)"
+        raise ToolkitError(f"{run} already holds a training run{stopped}: pass --resume to continue it, or choose "
+                           "another --out")
+    raise ToolkitError(f"--out {run} is not empty and holds no training run: refusing to write into it; choose a "
+                       "new or empty folder")
+
+
+def check_batch_fits(config: TrainConfig, size: tuple[int, int], world: int) -> None:
+    """A step's pairs must fit in this machine's memory: their input views alone take 2 x H x W float32 each
+    (activations many times more), and a batch of 10^8 pairs would allocate without end before the first step."""
+    memory = physical_memory_bytes()
+    pixels = max(h * w for h, w in config.scales.sizes) if config.recipe == "distill" else size[0] * size[1]
+    needed = config.batch * world * 2 * pixels * 4
+    if memory is not None and needed > memory:
+        raise ToolkitError(f"--batch {config.batch}: the pairs' input views alone need {needed / 1e9:,.0f} GB, more than "
+                           f"this machine's {memory / 1e9:,.0f} GB of memory; use a smaller --batch")
 
 
 def train(config: TrainConfig, images: str, labels: str, run: str | Path, resume: bool = False) -> dict:
@@ -220,6 +251,7 @@ def _data(config: TrainConfig, store: LabelStore, images: list, seed: int, world
 
 def _train(config, store, records, unreadable, images, labels, run, resume, rank, world, device) -> dict:
     train_images, val_images = split_train_val(records, config.val_fraction, config.val_max_images)
+    check_batch_fits(config, store.size, world)
     if config.threads:
         torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
@@ -242,10 +274,11 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
     if use_amp:
         keep_deformable_in_float32(model)
     step, best_score = 0, -1.0
-    state_path = run / "train_state.pt"
-    if config.init and not resume:
+    state_path = run / STATE_NAME
+    restart = resume and not state_path.exists()  # stopped before its first checkpoint: step 0, the run's config
+    if config.init and (not resume or restart):
         initialise_from(config.init, model, projection)
-    if resume:
+    if resume and not restart:
         state = _load_state(state_path)
         try:
             model.load_state_dict(state["model"])
@@ -297,8 +330,7 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
     metrics: dict[str, float] = {}
     model.train()
     tick = time.perf_counter()
-    bar = tqdm(total=config.steps, initial=step, desc="train", unit="step", file=sys.stderr,
-               disable=rank != 0 or not sys.stderr.isatty())
+    bar = progress_bar(total=config.steps, initial=step, desc="train", unit="step", enabled=rank == 0)
     for batch in loader:
         batch = {key: value.to(device, non_blocking=True) for key, value in batch.items()}
         count = batch["image_a"].shape[0]
