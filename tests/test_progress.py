@@ -66,3 +66,14 @@ def test_prune_writes_progress_lines_to_a_log_while_it_works(tmp_path: Path) -> 
     # stdout reaches the log line by line too: the pruning line before the distillation, not at exit
     assert lines[0].startswith("pruned 30% of channels") and distil[0] > 0
     assert lines[-1].startswith(f"wrote {tmp_path / 'p30.safetensors'}")
+
+
+def test_vo_reports_progress_in_a_log_and_says_where_it_wrote(shared_data, tmp_path, capsys, monkeypatch):
+    from vo_runtime.cli import main as vo_main
+
+    monkeypatch.setenv("EDGEFEAT_PROGRESS_SECONDS", "0")  # a line at every step (default: every 10 s)
+    assert vo_main(["--features", "orb", "--images", str(shared_data / "tum_fr2_desk_snippet"), "--max-frames", "6",
+                    "-o", str(tmp_path / "run")]) == 0
+    captured = capsys.readouterr()
+    assert any(line.startswith("vo: ") and "frame" in line for line in captured.err.splitlines())
+    assert captured.out.splitlines()[-1].startswith(f"wrote {tmp_path / 'run'}: frames.json")

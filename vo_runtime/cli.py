@@ -55,7 +55,9 @@ skipped: its pose is held, frames.json says why, and the summary counts it. --lo
 sequence in the dark (seeded per frame): GAMMA,SIGMA[,GAIN] darkens every frame (I' = 255 GAIN (I/255)^GAMMA,
 GAIN default 1) and adds Gaussian noise of SIGMA grey levels; the preset dark is 2,3,0.3; the preset onboard
 is a light riding on the camera (a bright spot fixed in the image, dim ambient, vignetting, Poisson-Gaussian
-noise after darkening, motion blur; vo_runtime/lowlight.py). Exit codes: 0 done, 2 bad input.
+noise after darkening, motion blur; vo_runtime/lowlight.py). --viz (with -o) adds viz.mp4 and viz/*.png overlays.
+{prog} verify ARTEFACT checks an artefact (or a TensorRT engine) against its stored reference outputs.
+Exit codes: 0 done, 2 bad input.
 """
 
 
@@ -114,15 +116,10 @@ def _check_options(args: argparse.Namespace) -> None:
 
 
 def _progress(items: Iterator, total: int, enabled: bool) -> Iterator:
-    if not enabled:
-        return items
-    try:
-        from tqdm import tqdm
-    except ImportError:  # a runtime-only install has no tqdm: run without a bar
-        return items
+    """tqdm's bar on a terminal; in a log, CI or a pipe a line every 10 s with the rate and an ETA (progress.py)."""
+    from vo_runtime.progress import progress_bar
 
-    # disable=None: no bar when stderr is not a terminal, so logs and errors stay line by line
-    return tqdm(items, total=total, desc="vo", unit="frame", file=sys.stderr, disable=None)
+    return progress_bar(items, total=total, desc="vo", unit="frame", enabled=enabled)
 
 
 def _load_groundtruth(args: argparse.Namespace, sequence: Sequence) -> Any:

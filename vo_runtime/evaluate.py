@@ -15,7 +15,7 @@ from vo_runtime.errors import VORuntimeError, first_line
 from vo_runtime.odometry import INITIALISING, SKIPPED, VOResult
 
 
-EVALUATION_EXTRA = "edgefeat[eval]"
+EVALUATION_EXTRAS = ("edgefeat-runtime[eval]", "edgefeat[eval]")  # the runtime wheel's extra, the full install's
 
 
 def require_evaluation_packages() -> None:
@@ -25,7 +25,7 @@ def require_evaluation_packages() -> None:
     missing = [name for name in ("evo", "matplotlib") if importlib.util.find_spec(name) is None]
     if missing:
         raise VORuntimeError(f"--gt needs {' and '.join(missing)}, which a runtime-only install leaves out: "
-                             f"pip install '{EVALUATION_EXTRA}'")
+                             f"pip install '{EVALUATION_EXTRAS[0]}' (the runtime wheel) or '{EVALUATION_EXTRAS[1]}'")
 
 
 def require_groundtruth_file(path: Path) -> None:
