@@ -206,12 +206,12 @@ def _run(args: argparse.Namespace, claim: OutputClaim | None) -> int:
         viz = (observations, lowlight) if args.viz else None
         _write_outputs(claim, vo.results, frames, summary, report, viz)
     print(json.dumps(summary) if args.json else " ".join(f"{k}={v}" for k, v in summary.items()))
-    if claim is not None:  # the line that says where it wrote (stderr under --json, whose stdout is the JSON alone)
-        written = sorted(p.name for p in args.output.iterdir() if not p.name.startswith("."))
-        print(f"wrote {args.output}: {', '.join(written)}", file=sys.stderr if args.json else sys.stdout)
     if skipped:
         print(f"warning: skipped {len(skipped)} of {len(frames)} frames (pose held), first: {skipped[0].problem}",
               file=sys.stderr)
+    if claim is not None:  # the line that says where it wrote (stderr under --json, whose stdout is the JSON alone)
+        written = sorted(p.name for p in args.output.iterdir() if not p.name.startswith("."))
+        print(f"wrote {args.output}: {', '.join(written)}", file=sys.stderr if args.json else sys.stdout)
     return 0
 
 
