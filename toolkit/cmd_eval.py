@@ -133,8 +133,8 @@ def _evaluate(args: argparse.Namespace, config: EvalConfig, detector_config: Det
         result = evaluate_model(detector, pairs, config, images)
         models.append({"label": result.label, "kind": result.kind, "settings": result.settings,
                        "summary": group_summaries(result), "pairs": pair_records(result)})
-        if result.example is not None:
-            examples[result.label] = result.example
+        if result.examples:
+            examples[result.label] = result.examples
     report = {
         "command": args.eval_command,
         "data": str(args.data.resolve()),

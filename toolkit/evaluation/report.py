@@ -15,7 +15,7 @@ import numpy as np
 
 from toolkit.atomic import OutputClaim, OutputKind, claim_output_dir
 from toolkit.evaluation.metrics import warp_points
-from toolkit.evaluation.runner import PairExample
+from toolkit.evaluation.runner import PairExample, stretch_contrast
 
 REPORT_JSON = "results.json"
 REPORT_MARKDOWN = "results.md"
@@ -83,12 +83,37 @@ def safe_file_stem(label: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", label).strip("_") or "model"
 
 
-def plot_matches(example: PairExample, path: Path, label: str, threshold: float = 3.0) -> None:
-    """Side-by-side PNG of one pair's mutual-NN matches: green within ``threshold`` px of the truth, red not."""
+DARK_MEAN = 60  # a pair image darker than this (mean grey level) is shown contrast-stretched
+
+
+def _shown(image: np.ndarray) -> np.ndarray:
+    """A dark image min-max stretched for the eye (detections ran on the image as it was)."""
+    return stretch_contrast(image) if image.mean() < DARK_MEAN else image
+
+
+def plot_matches(examples: list[PairExample], path: Path, label: str, threshold: float = 3.0) -> None:
+    """PNG of a grid of pairs, one pair a row side by side, with their mutual-NN matches: green within
+    ``threshold`` px of the truth, red not; dark images are shown stretched (the title says so)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    image_a, image_b = example.image_a, example.image_b
+    width = max(e.image_a.shape[1] + e.image_b.shape[1] for e in examples)
+    heights = [max(e.image_a.shape[0], e.image_b.shape[0]) for e in examples]
+    scale = min(1.0, 1400 / width)  # keep the figure a screen wide
+    figure = Figure(figsize=(width * scale / 100, (sum(heights) + 22 * len(examples)) * scale / 100), dpi=100)
+    FigureCanvasAgg(figure)
+    top = 1.0
+    for example, height in zip(examples, heights):
+        share = (height + 22) / (sum(heights) + 22 * len(examples))
+        axes = figure.add_axes((0, top - share, 1, share * height / (height + 22)))
+        top -= share
+        _draw_pair(axes, example, threshold, label)
+    figure.savefig(path, dpi=100)
+
+
+def _draw_pair(axes: Any, example: PairExample, threshold: float, label: str) -> None:
+    image_a, image_b = _shown(example.image_a), _shown(example.image_b)
+    stretched = image_a is not example.image_a or image_b is not example.image_b
     height = max(image_a.shape[0], image_b.shape[0])
     canvas = np.zeros((height, image_a.shape[1] + image_b.shape[1]), dtype=np.uint8)
     canvas[: image_a.shape[0], : image_a.shape[1]] = image_a
@@ -98,19 +123,14 @@ def plot_matches(example: PairExample, path: Path, label: str, threshold: float 
     points_b = example.detection_b.keypoints.astype(np.float64)
     matched_a, matched_b = points_a[example.matches[:, 0]], points_b[example.matches[:, 1]]
     correct = np.linalg.norm(warp_points(matched_a, example.homography) - matched_b, axis=1) <= threshold
-
-    figure = Figure(figsize=(canvas.shape[1] / 100, canvas.shape[0] / 100 + 0.4), dpi=100)
-    FigureCanvasAgg(figure)
-    axes = figure.add_axes((0, 0, 1, canvas.shape[0] / (canvas.shape[0] + 40)))
     axes.imshow(canvas, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
     axes.scatter(points_a[:, 0], points_a[:, 1], s=2, c="yellow", linewidths=0)
     axes.scatter(points_b[:, 0] + offset, points_b[:, 1], s=2, c="yellow", linewidths=0)
     for (xa, ya), (xb, yb), ok in zip(matched_a, matched_b, correct):
         axes.plot([xa, xb + offset], [ya, yb], color="lime" if ok else "red", linewidth=0.5, alpha=0.8)
     axes.set_axis_off()
-    figure.suptitle(f"{label}  {example.name}: {int(correct.sum())}/{len(correct)} mutual-NN matches within "
-                    f"{threshold:g} px", fontsize=9, y=0.995)
-    figure.savefig(path, dpi=100)
+    axes.set_title(f"{label}  {example.name}: {int(correct.sum())}/{len(correct)} mutual-NN matches within "
+                   f"{threshold:g} px" + ("  (shown contrast-stretched)" if stretched else ""), fontsize=8, pad=2)
 
 
 # An earlier report is replaced (eval has no --force: its reports are cheap to remake); anything else is refused.
@@ -129,6 +149,6 @@ def write_report(claim: OutputClaim, report: dict[str, Any], examples: dict[str,
     with claim.writing() as staging:
         (staging / REPORT_JSON).write_text(json.dumps(report, indent=2) + "\n")
         (staging / REPORT_MARKDOWN).write_text(format_markdown(report))
-        for label, example in examples.items():
-            plot_matches(example, staging / f"matches_{safe_file_stem(label)}.png", label,
+        for label, shown in examples.items():
+            plot_matches(shown, staging / f"matches_{safe_file_stem(label)}.png", label,
                          report["protocol"]["correct_threshold"])

@@ -47,7 +47,15 @@ class ModelResult:
     kind: str
     settings: dict[str, Any]
     pairs: dict[str, tuple[str, PairMetrics]] = field(default_factory=dict)   # name -> (group, metrics)
-    example: PairExample | None = None
+    examples: list[PairExample] = field(default_factory=list)  # a few pairs spread over the set, for the plot
+
+
+EXAMPLE_PAIRS = 6  # pairs drawn per model in the report's match plot
+
+
+def example_indices(count: int, wanted: int = EXAMPLE_PAIRS) -> set[int]:
+    """``wanted`` pair indices spread evenly over ``count`` pairs (all of them when there are fewer)."""
+    return set(np.linspace(0, count - 1, min(count, wanted)).round().astype(int).tolist()) if count else set()
 
 
 class RecentCache:
@@ -95,11 +103,11 @@ def stretch_contrast(image: np.ndarray) -> np.ndarray:
     return np.round((image.astype(np.float32) - low) * (255.0 / (high - low))).astype(np.uint8)
 
 
-def evaluate_model(detector: Detector, pairs: list[ImagePair], config: EvalConfig, images: ImageCache,
-                   example_index: int = 0) -> ModelResult:
+def evaluate_model(detector: Detector, pairs: list[ImagePair], config: EvalConfig, images: ImageCache) -> ModelResult:
     """Detect on both images of every pair (a progress bar on stderr) and compute each pair's metrics."""
     result = ModelResult(detector.label, detector.kind, dict(detector.settings))
     detections = RecentCache()
+    shown = example_indices(len(pairs))
     for index, pair in enumerate(progress_bar(pairs, desc=f"eval {detector.label}", unit="pair", leave=False)):
         image_a, scale_a = images.get(pair.path_a)
         image_b, scale_b = images.get(pair.path_b)
@@ -110,8 +118,9 @@ def evaluate_model(detector: Detector, pairs: list[ImagePair], config: EvalConfi
             detection_a.keypoints, detection_a.descriptors, detection_b.keypoints, detection_b.descriptors,
             homography, image_a.shape, image_b.shape, config.correct_threshold, config.ransac_threshold)
         result.pairs[pair.name] = (pair.group, metrics)
-        if index == example_index:
-            result.example = PairExample(pair.name, image_a, image_b, detection_a, detection_b, matches, homography)
+        if index in shown:
+            result.examples.append(PairExample(pair.name, image_a, image_b, detection_a, detection_b, matches,
+                                               homography))
     return result
 
 
