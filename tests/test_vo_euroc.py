@@ -144,6 +144,9 @@ def test_bad_groundtruth_and_missing_files(tmp_path, capsys):
     root = write_mav0(tmp_path / "nan")
     _corrupt(root, "state_groundtruth_estimate0/data.csv", f"#t\n{T0},nan,0,0,1,0,0,0\n")
     assert main(["--features", "orb", "--images", str(root), "--gt", "auto", "--no-progress"]) == 2
+    assert "holds 1 pose" in capsys.readouterr().err  # one line: nothing to associate frames with
+    _corrupt(root, "state_groundtruth_estimate0/data.csv", f"#t\n{T0},nan,0,0,1,0,0,0\n{T0 + 5_000_000},0,0,0,1,0,0,0\n")
+    assert main(["--features", "orb", "--images", str(root), "--gt", "auto", "--no-progress"]) == 2
     assert "non-finite poses" in capsys.readouterr().err
     with pytest.raises(CalibrationError, match="no cam1/ for --camera 1"):
         open_sequence(root, camera=1)

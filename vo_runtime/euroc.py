@@ -155,6 +155,8 @@ def read_body_groundtruth(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """``state_groundtruth_estimate0/data.csv``: timestamps [N] in seconds and body-to-world poses [N, 4, 4]."""
     path = Path(path)
     rows = _csv_rows(path, 8)
+    if len(rows) < 2:
+        raise VORuntimeError(f"{path} holds {len(rows)} pose: nothing to evaluate against")
     stamps = [_nanoseconds(row[0], path) for row in rows]
     _increasing(stamps, path)
     try:
