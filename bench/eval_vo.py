@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 
 from vo_runtime import FeatureExtractor, OrbExtractor, VisualOdometry, VOConfig  # noqa: E402
 from vo_runtime.artefact import default_artefact  # noqa: E402
-from vo_runtime.datasets import open_sequence  # noqa: E402
+from vo_runtime.datasets import frame_size, open_sequence  # noqa: E402
 from vo_runtime.errors import VORuntimeError  # noqa: E402
 from vo_runtime.evaluate import evaluate, plot_trajectory, sequence_groundtruth  # noqa: E402
 from vo_runtime.features import KeypointBudget, to_gray_u8  # noqa: E402
@@ -211,7 +211,7 @@ def main() -> int:
     jobs = []
     for name in args.sequences.split(","):
         sequence = open_sequence(args.data / name)
-        height, width = next(read_frames(sequence.frames[:1])).shape[:2]
+        height, width = frame_size(sequence.camera, sequence.frames)
         artefact = args.artefact or default_artefact(*(size or (width, height)))
         for features in args.features.split(","):
             for light in args.light.split(","):

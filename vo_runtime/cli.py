@@ -16,8 +16,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from vo_runtime.artefact import ASPECT_TOLERANCE, default_artefact
-from vo_runtime.clitools import OneLineArgumentParser, run_guarded
-from vo_runtime.datasets import CAMERA_PRESETS, Sequence, open_sequence
+from vo_runtime.clitools import command_parser, run_guarded
+from vo_runtime.datasets import CAMERA_PRESETS, Sequence, frame_size, open_sequence
 from vo_runtime.errors import FrameError, VORuntimeError
 from vo_runtime.features import FeatureExtractor, OrbExtractor, to_gray_u8
 from vo_runtime.lowlight import Darkening, parse_lowlight
@@ -161,7 +161,7 @@ def _run(args: argparse.Namespace, claim: OutputClaim | None) -> int:
     sequence = open_sequence(args.images, args.calib, args.camera)
     groundtruth = _load_groundtruth(args, sequence)
     frames = sequence.frames[: args.max_frames]
-    height, width = _frame_size(sequence.camera, frames)
+    height, width = frame_size(sequence.camera, frames)
     if args.features == "artefact" and args.artefact is None:
         args.artefact = default_artefact(width, height)  # the shipped artefact for this camera's aspect
     extractor = (OrbExtractor(args.max_keypoints) if args.features == "orb"
@@ -215,17 +215,6 @@ def _run(args: argparse.Namespace, claim: OutputClaim | None) -> int:
     return 0
 
 
-
-
-def _frame_size(camera: Any, frames: list[Path]) -> tuple[int | None, int | None]:
-    """(height, width) of the frames: the calibration's, or for one without a size (KITTI's) the first frame's."""
-    if camera.height and camera.width:
-        return camera.height, camera.width
-    try:  # read_frame: a corrupt first frame prints no decoder line here (it is reported when it is skipped)
-        first = read_frame(frames[0]) if frames else None
-    except FrameError:
-        first = None
-    return (None, None) if first is None else first.shape[:2]
 
 
 def _warn_on_squeezed_frames(extractor: Any, height: int | None, width: int | None) -> None:
@@ -300,11 +289,7 @@ def _write_outputs(claim: OutputClaim, results: list[VOResult], frames: list[Pat
 
 
 def build_parser(prog: str = "python -m vo_runtime") -> argparse.ArgumentParser:
-    parser = OneLineArgumentParser(prog=prog, description=DESCRIPTION, epilog=EPILOG.format(prog=prog),
-                                   formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_arguments(parser)
-    parser.set_defaults(func=run)
-    return parser
+    return command_parser(prog, DESCRIPTION, EPILOG, add_arguments, run)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,7 +12,7 @@ import argparse
 import os
 import sys
 import warnings
-from typing import NoReturn, Sequence
+from typing import Callable, NoReturn, Sequence
 
 from vo_runtime.errors import MESSAGE_LIMIT, first_line
 
@@ -25,6 +25,18 @@ class OneLineArgumentParser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         self.exit(BAD_INPUT, f"error: {self.prog}: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
+def command_parser(prog: str, description: str, epilog: str,
+                   add_arguments: Callable[[argparse.ArgumentParser], None],
+                   run: Callable[[argparse.Namespace], int]) -> argparse.ArgumentParser:
+    """The parser of one runtime command (``python -m vo_runtime``, ``... verify``): one-line errors, the epilog
+    as written with ``{prog}`` filled in, ``func`` set to ``run``."""
+    parser = OneLineArgumentParser(prog=prog, description=description, epilog=epilog.format(prog=prog),
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_arguments(parser)
+    parser.set_defaults(func=run)
+    return parser
 
 
 def silence_native_logs() -> None:

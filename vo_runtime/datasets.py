@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from vo_runtime.camera import Camera, load_camera
-from vo_runtime.errors import CalibrationError, VORuntimeError
+from vo_runtime.errors import CalibrationError, FrameError, VORuntimeError
 from vo_runtime.euroc import euroc_root, open_euroc
-from vo_runtime.sequence import frame_timestamps, list_frames
+from vo_runtime.sequence import frame_timestamps, list_frames, read_frame
 
 # TUM RGB-D "freiburg2" RGB intrinsics (OpenCV distortion order), from the dataset's calibration page.
 CAMERA_PRESETS = {
@@ -41,6 +41,18 @@ class Sequence:
 
     def __len__(self) -> int:
         return len(self.frames)
+
+
+def frame_size(camera: Camera, frames: list[Path]) -> tuple[int | None, int | None]:
+    """(height, width) of the frames: the calibration's, or for one without a size (KITTI's) the first frame's;
+    (None, None) when neither is known."""
+    if camera.height and camera.width:
+        return camera.height, camera.width
+    try:  # read_frame: a corrupt first frame prints no decoder line here (it is reported when it is skipped)
+        first = read_frame(frames[0]) if frames else None
+    except FrameError:
+        first = None
+    return (None, None) if first is None else first.shape[:2]
 
 
 def resolve_camera(calib: str | Path, camera: int = 0) -> Camera:

@@ -148,9 +148,7 @@ def _lost_mask(used: Seq[VOResult], stamps: np.ndarray) -> np.ndarray:
 
     lost_stamps = np.array([r.timestamp for r in used if r.status not in TRACKED_STATES and r.timestamp is not None],
                            float)
-    if lost_stamps.size == 0:
-        return np.zeros(len(stamps), bool)
-    return np.min(np.abs(np.asarray(stamps, float)[:, None] - lost_stamps[None, :]), axis=1) < 1e-6
+    return np.isin(np.asarray(stamps, float), lost_stamps)  # evo keeps the stamps it was given, bit for bit
 
 
 def plot_trajectory(path: str | Path, report: dict[str, Any], title: str) -> None:

@@ -13,6 +13,7 @@ first frame sees the same noise on the same frame):
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Union
@@ -75,6 +76,10 @@ class OnboardLight:
         return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
 
     def _illumination(self, height: int, width: int) -> np.ndarray:
+        """The gain map, the same for every frame of a size: computed once (5 ms at 752x480)."""
+        return _illumination_map(self, height, width)
+
+    def _gain_map(self, height: int, width: int) -> np.ndarray:
         y, x = np.mgrid[0:height, 0:width].astype(np.float32)
         diagonal = math.hypot(width, height)
         cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
@@ -102,6 +107,13 @@ class OnboardLight:
 
     def describe(self) -> str:
         return "onboard light (spot on the camera, vignetting, shot + read noise, motion blur)"
+
+
+@functools.lru_cache(maxsize=4)
+def _illumination_map(light: OnboardLight, height: int, width: int) -> np.ndarray:
+    gain = light._gain_map(height, width)
+    gain.setflags(write=False)  # shared between frames
+    return gain
 
 
 PRESETS = {"dark": GlobalDark(2.0, 3.0, 0.3), "onboard": OnboardLight()}

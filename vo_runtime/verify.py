@@ -16,7 +16,7 @@ from typing import Any, Dict, List, Tuple
 import numpy as np
 
 from vo_runtime.artefact import verify_artefact
-from vo_runtime.clitools import OneLineArgumentParser, run_guarded
+from vo_runtime.clitools import command_parser, run_guarded
 from vo_runtime.errors import VORuntimeError
 from vo_runtime.references import (
     MATCH_RADIUS_PX, Agreement, Runner, compare_dense, compare_keypoints, load_references, network_input, onnx_runner,
@@ -159,11 +159,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def build_parser(prog: str = "python -m vo_runtime verify") -> argparse.ArgumentParser:
-    parser = OneLineArgumentParser(prog=prog, description=DESCRIPTION, epilog=EPILOG.format(prog=prog),
-                                   formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_arguments(parser)
-    parser.set_defaults(func=run)
-    return parser
+    return command_parser(prog, DESCRIPTION, EPILOG, add_arguments, run)
 
 
 def main(argv: List[str] | None = None) -> int:
