@@ -23,7 +23,7 @@ from export.readme import artefact_readme
 from export.reference import reference_images, write_cpu_references
 from models.checkpoint import load_checkpoint
 from models.deform import set_deform_strategy
-from models.keypoints import is_score_window
+from models.keypoints import is_score_window, model_refinement, parse_refinement
 from models.featurenet import set_elu_form
 from profiles import TargetProfile, load_profile
 from export.errors import ExportError
@@ -46,6 +46,7 @@ class ExportOptions:
     max_keypoints: int | None = None
     nms_radius: int = 4
     score_window: int = 1  # `models.keypoints.keypoint_scores`; 1 = the peak pixel
+    refinement: str = ""  # `models.keypoints.parse_refinement` text; "" = the one the checkpoint names
     threshold: float = 0.005
     border: int = 4
     dense: bool = False
@@ -81,6 +82,11 @@ def _check_postprocess(options: ExportOptions, size: tuple[int, int]) -> None:
     if not 0 <= options.nms_radius < min(size) // 4:
         raise ExportError(f"--nms-radius must be between 0 and {min(size) // 4 - 1} px at {size[0]}x{size[1]}, "
                            f"got {options.nms_radius}")
+    if options.refinement:
+        try:
+            parse_refinement(options.refinement)
+        except ValueError as exc:
+            raise ExportError(f"--refine: {exc}") from None
     if not (is_score_window(options.score_window) and options.score_window < min(size) // 4):
         raise ExportError(f"--score-window must be an odd number of pixels between 1 and {min(size) // 4 - 1}, "
                            f"got {options.score_window}")
@@ -111,8 +117,12 @@ def _export_into(claim: OutputClaim, options: ExportOptions, profile: TargetProf
     set_elu_form(net, profile.elu_form)
     torch.manual_seed(0)
 
+    try:
+        refinement = model_refinement(net, options.refinement)
+    except ValueError as exc:
+        raise ExportError(f"--refine: {exc}") from None
     keypoint_module = KeypointGraph(net, height, width, max_keypoints, options.nms_radius, options.threshold, options.border,
-                                    options.score_window).eval()
+                                    options.score_window, refinement).eval()
     dense_module = DenseGraph(net).eval()
     dummy = torch.zeros(1, 1, height, width)
     log(f"exporting {info.arch} for {profile.name} at {height}x{width}, opset {profile.max_opset}, deform {profile.deform_strategy}")
@@ -164,7 +174,8 @@ def _export_into(claim: OutputClaim, options: ExportOptions, profile: TargetProf
                       "resize": "cv2.INTER_AREA to the input shape", "resize_policy": "resize"},
             "outputs": _describe_outputs(options.dense, max_keypoints, height, width, net),
             "postprocess": {"max_keypoints": max_keypoints, "nms_radius": options.nms_radius,
-                            "score_window": options.score_window, "detection_threshold": options.threshold, "border": options.border},
+                            "score_window": options.score_window, "refinement": refinement.describe(),
+                            "detection_threshold": options.threshold, "border": options.border},
             "parity": {**parity.to_dict(), "required_identical": required, "min_gather_index": lowest_gather},
             # the parity run's inputs and this graph's outputs for them, for `python -m vo_runtime verify`
             "reference": write_cpu_references(staging, MODEL_NAME, reference_images(paths, height, width), 1.0 / 255.0,

@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from models.keypoints import border_mask, extract_keypoints, heatmap_from_logits, keypoint_heads
+from models.keypoints import Refinement, border_mask, extract_keypoints, heatmap_from_logits, keypoint_heads
 
 KEYPOINT_OUTPUTS = ("keypoints", "scores", "descriptors", "num_valid")
 DENSE_OUTPUTS = ("heatmap", "descriptors_coarse")
@@ -18,9 +18,10 @@ class KeypointGraph(nn.Module):
 
     def __init__(
         self, net: nn.Module, height: int, width: int, max_keypoints: int, nms_radius: int, threshold: float, border: int,
-        score_window: int = 1,
+        score_window: int = 1, refinement: Refinement = Refinement(),
     ) -> None:
         super().__init__()
+        self.refinement = refinement
         self.net = net
         self.max_keypoints = int(max_keypoints)
         self.nms_radius = int(nms_radius)
@@ -35,6 +36,7 @@ class KeypointGraph(nn.Module):
         out = extract_keypoints(
             logits, descriptors, self.max_keypoints, self.nms_radius, self.threshold, self.border,
             self.border_weights, projection=projection, score_window=self.score_window,
+            refinement=self.refinement,
         )
         return tuple(out[name] for name in KEYPOINT_OUTPUTS)
 

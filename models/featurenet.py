@@ -105,6 +105,9 @@ class FeatureNetConfig:
     pixel_head_channels: int = 64  # width of the cell-pixel keypoint head; 0 = no such head
     context_blocks: int = 0  # inverted residual blocks at H/8, after the deformable conv, before the heads
     context_channels: int = 256  # their expanded width
+    # How the heatmap is read to sub-pixel positions (`models.keypoints.parse_refinement`): the one these
+    # weights were trained for, which export and evaluation use unless told otherwise.
+    refinement: str = "centroid"
 
     def __post_init__(self) -> None:
         if len(self.widths) != 4 or len(self.blocks) != 4:
@@ -127,6 +130,9 @@ class FeatureNetConfig:
             raise ValueError("context_blocks must be >= 0 and context_channels >= 1")
         self.context_blocks, self.context_channels = int(self.context_blocks), int(self.context_channels)
         self.pixel_head_channels = int(self.pixel_head_channels)
+        from models.keypoints import parse_refinement
+
+        parse_refinement(self.refinement)  # ValueError names the bad text
         if self.deform_scale not in (2, 3):
             raise ValueError("deform_scale must be 2 (H/4) or 3 (H/8)")
         self.widths = [int(w) for w in self.widths]

@@ -6,6 +6,9 @@ exported ONNX graph for TensorRT 8.0.
 """
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 
@@ -87,32 +90,128 @@ def top_k_keypoints(scores: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.T
     return torch.index_select(table, 0, indices), values
 
 
-def refine_keypoints(heatmap: torch.Tensor, keypoints: torch.Tensor) -> torch.Tensor:
-    """Sub-pixel keypoints: the centroid of the heatmap's 3x3 window around each integer peak.
+REFINEMENTS = ("centroid", "softargmax", "quadratic")
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """How a heatmap peak becomes a sub-pixel keypoint (`refine_keypoints`).
+
+    - ``centroid``: the probability-weighted mean offset of the (2r+1)^2 window (3x3 by default);
+    - ``softargmax``: weights ``exp((p - max) / temperature)`` over the window, as ALIKE's DKD (radius 2,
+      temperature 0.1 on its score map): a low temperature listens to the highest values only, so a wide
+      window does not let background mass pull the point;
+    - ``quadratic``: a parabola through the log-probabilities of the peak and its two neighbours, per axis
+      (exact for a Gaussian-shaped peak).
+    A centroid's offset is clamped to ``radius - 0.5`` (half a pixel for 3x3: the peak's own pixel), a
+    soft-argmax's to ``radius``, a parabola's to half a pixel.
+    """
+
+    method: str = "centroid"
+    radius: int = 1
+    temperature: float = 0.1
+
+    def __post_init__(self) -> None:
+        if self.method not in REFINEMENTS:
+            raise ValueError(f"refinement must be one of {', '.join(REFINEMENTS)}, not {self.method!r}")
+        if not 1 <= self.radius <= 3 or not (self.temperature > 0 and math.isfinite(self.temperature)):
+            raise ValueError("refinement radius must be 1..3 and its temperature a positive number")
+
+    def describe(self) -> str:
+        if self.method == "softargmax":
+            return f"softargmax:{2 * self.radius + 1}:{self.temperature:g}"
+        return self.method if self.radius == 1 or self.method == "quadratic" else f"centroid:{2 * self.radius + 1}"
+
+
+def parse_refinement(text: str) -> Refinement:
+    """``centroid``, ``centroid:5``, ``quadratic``, ``softargmax`` (5x5, 0.1) or ``softargmax:W:T`` -> Refinement."""
+    parts = text.strip().split(":")
+    method = parts[0]
+    try:
+        window = int(parts[1]) if len(parts) > 1 else (5 if method == "softargmax" else 3)
+        temperature = float(parts[2]) if len(parts) > 2 else 0.1
+    except ValueError:
+        raise ValueError(f"refinement {text!r}: the window must be an odd integer and the temperature a number") from None
+    if len(parts) > (3 if method == "softargmax" else 2 if method == "centroid" else 1) or window % 2 == 0:
+        raise ValueError(f"refinement {text!r} is not one of centroid[:W], quadratic, softargmax[:W[:T]] (W odd)")
+    return Refinement(method, window // 2, temperature)
+
+
+def model_refinement(net: torch.nn.Module, override: str = "") -> Refinement:
+    """``override`` (a `parse_refinement` text) or the refinement a network's config names; the 3x3 centroid for
+    networks without one (SuperPoint, weights trained before the setting existed)."""
+    config = getattr(net, "config", None)
+    return parse_refinement(override or getattr(config, "refinement", "centroid"))
+
+
+def peak_windows(heatmap: torch.Tensor, keypoints: torch.Tensor, radius: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The (2r+1)^2 heatmap values around each integer keypoint, zero outside the image.
+
+    Args:
+        heatmap: [1, 1, H, W]; keypoints: [K, 2] integer (x, y).
+    Returns:
+        windows [K, (2r+1)^2] row-major, offsets [(2r+1)^2, 2] (dx, dy) of each window column.
+
+    The indices are int32 arithmetic on a zero-bordered map (no clamping, always in range): a flat index in
+    floating point would overflow half precision (see `top_k_keypoints`). Only the K windows are read.
+    """
+    _, _, height, width = heatmap.shape
+    side = 2 * radius + 1
+    padded = F.pad(heatmap, (radius, radius, radius, radius)).reshape(-1)
+    step = torch.arange(-radius, radius + 1, dtype=torch.int32, device=heatmap.device)
+    step_x, step_y = step.repeat(side), step.repeat_interleave(side)
+    window_offsets = step_y * (width + 2 * radius) + step_x
+    rows = keypoints[:, 1:].to(torch.int32) + radius
+    centre = rows * (width + 2 * radius) + keypoints[:, :1].to(torch.int32) + radius  # [K, 1]
+    windows = torch.index_select(padded, 0, (centre + window_offsets).reshape(-1)).reshape(-1, side * side)
+    offsets = torch.stack([step_x, step_y], dim=1).to(heatmap.dtype)
+    return windows, offsets
+
+
+def refine_keypoints(heatmap: torch.Tensor, keypoints: torch.Tensor, refinement: Refinement = Refinement(),
+                     gradient_through_clamp: bool = False) -> torch.Tensor:
+    """Sub-pixel keypoints from the heatmap around each integer peak (`Refinement` says how).
 
     Args:
         heatmap: [1, 1, H, W] keypoint probability (before NMS).
         keypoints: [K, 2] integer (x, y) peaks from `top_k_keypoints`.
     Returns:
-        [K, 2] float (x, y), each within half a pixel of its peak. The 8x8-cell softmax puts a point's
-        mass on neighbouring pixels too; the integer peak alone costs ~0.07 px of localisation error on
-        HPatches. Only the K windows are read (9 gathers each), not the whole map, so it costs ~nothing.
+        [K, 2] float (x, y). The 8x8-cell softmax puts a point's mass on neighbouring pixels too; the integer
+        peak alone costs ~0.07 px of localisation error on HPatches. Differentiable in ``heatmap`` (the
+        position loss of training runs this very function).
 
-    The window indices are int32 arithmetic on a zero-bordered map (no clamping, always in range): a flat
-    index in floating point would overflow half precision (see `top_k_keypoints`).
+    ``gradient_through_clamp`` (training only): the clamped value, with the gradient of the unclamped one, so
+    a point whose peak flipped to the neighbouring pixel is still pulled back instead of resting at the clamp.
     """
-    _, _, height, width = heatmap.shape
-    padded = F.pad(heatmap, (1, 1, 1, 1)).reshape(-1)  # [(H+2)*(W+2)]
-    step = torch.tensor([-1, 0, 1], dtype=torch.int32, device=heatmap.device)
-    step_x, step_y = step.repeat(3), step.repeat_interleave(3)  # [9] each, row-major 3x3 window
-    window_offsets = step_y * (width + 2) + step_x  # [9] int32
-    dx, dy = step_x.to(heatmap.dtype), step_y.to(heatmap.dtype)
-    centre = (keypoints[:, 1:].to(torch.int32) + 1) * (width + 2) + keypoints[:, :1].to(torch.int32) + 1  # [K, 1]
-    index = (centre + window_offsets).reshape(-1)
-    window = torch.index_select(padded, 0, index).reshape(-1, 9)  # [K, 9]
-    moments = window @ torch.stack([torch.ones_like(dx), dx, dy], dim=1)  # [K, 3]: mass, x and y moments
+    if refinement.method == "quadratic":
+        return keypoints + _clamped(_quadratic_shift(heatmap, keypoints), 0.5, gradient_through_clamp)
+    windows, offsets = peak_windows(heatmap, keypoints, refinement.radius)
+    if refinement.method == "softargmax":
+        peak = windows.max(dim=1, keepdim=True).values.detach()
+        windows = torch.exp((windows - peak) / refinement.temperature)
+    moments = windows @ torch.cat([torch.ones_like(offsets[:, :1]), offsets], dim=1)  # [K, 3]: mass, x, y
     shift = moments[:, 1:] / moments[:, :1].clamp(min=1e-12)
-    return keypoints + shift.clamp(-0.5, 0.5)
+    limit = refinement.radius - 0.5 if refinement.method == "centroid" else float(refinement.radius)
+    return keypoints + _clamped(shift, limit, gradient_through_clamp)
+
+
+def _clamped(shift: torch.Tensor, limit: float, gradient_through: bool) -> torch.Tensor:
+    clamped = shift.clamp(-limit, limit)
+    return shift + (clamped - shift).detach() if gradient_through else clamped
+
+
+def _quadratic_shift(heatmap: torch.Tensor, keypoints: torch.Tensor) -> torch.Tensor:
+    """Per axis, the vertex of the parabola through log p at -1, 0, +1 of the peak (unclamped)."""
+    windows, _ = peak_windows(heatmap, keypoints, 1)
+    logs = torch.log(windows.clamp(min=1e-6))
+    centre = logs[:, 4:5]
+    left_right = logs[:, [3, 5]]
+    up_down = logs[:, [1, 7]]
+    shifts = []
+    for low_high in (left_right, up_down):
+        curvature = (low_high[:, :1] + low_high[:, 1:] - 2.0 * centre).clamp(max=-1e-6)  # a peak curves down
+        shifts.append(0.5 * (low_high[:, :1] - low_high[:, 1:]) / curvature)
+    return torch.cat(shifts, dim=1)
 
 
 def unit_rows(x: torch.Tensor, dim: int = 1) -> torch.Tensor:
@@ -190,13 +289,15 @@ def extract_keypoints(
     subpixel: bool = True,
     projection: tuple[torch.Tensor, torch.Tensor] | None = None,
     score_window: int = 1,
+    refinement: Refinement = Refinement(),
 ) -> dict[str, torch.Tensor]:
     """One image's heads -> fixed-size keypoint set.
 
     Args:
         logits: [1, 65, h, w]; descriptors: [1, D, h, w].
         border_weights: a precomputed `border_mask` [8h, 8w] (an export stores it as a constant).
-        subpixel: refine each peak to its 3x3 centroid (`refine_keypoints`).
+        subpixel: refine each peak to a sub-pixel position (`refine_keypoints` with ``refinement``; the
+            default is the 3x3 centroid).
         projection: the descriptor projection from `keypoint_heads`, when ``descriptors`` are features.
         score_window: odd window whose probability mass scores, suppresses and ranks a heatmap peak
             (`keypoint_scores`; 3 at 240x320 and 5 at 480x640 matched best on HPatches); 1, the default,
@@ -214,7 +315,7 @@ def extract_keypoints(
     scores = max_pool_nms(candidates, nms_radius).reshape(height, width) * border_weights
     keypoints, values = top_k_keypoints(scores, max_keypoints)
     if subpixel:
-        keypoints = refine_keypoints(heatmap, keypoints)
+        keypoints = refine_keypoints(heatmap, keypoints, refinement)
     # Counted in float (exact below 2^24): an integer ReduceSum exports through int64, which TensorRT 8 lacks.
     num_valid = (values > threshold).to(values.dtype).sum().to(torch.int32).reshape(1)
     return {

@@ -39,6 +39,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--score-window", type=int, default=1, metavar="PX",
                         help="odd window whose keypoint probability mass ranks a heatmap peak (default 1: the peak "
                         "itself, best for VO; 3 at 240x320 / 5 at 480x640 matched more points on HPatches)")
+    parser.add_argument("--refine", default="", metavar="METHOD",
+                        help="how a heatmap peak becomes a sub-pixel keypoint: centroid[:W], quadratic or "
+                        "softargmax[:W[:T]] (default: the one the checkpoint was trained for; centroid = 3x3)")
     parser.add_argument("--threshold", type=float, default=0.005, help="detection threshold on the keypoint probability")
     parser.add_argument("--border", type=int, default=4, help="pixels removed at the image border (default 4)")
     parser.add_argument("--dense", action="store_true", help="output the raw heads instead of keypoints")
@@ -53,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
     options = ExportOptions(
         target=args.target, output=args.output, checkpoint=args.checkpoint, input_size=parse_size(args.input_size, "--input-size") if args.input_size else None,
         precision=args.precision, max_keypoints=args.max_keypoints, nms_radius=args.nms_radius, score_window=args.score_window,
+        refinement=args.refine,
         threshold=args.threshold, border=args.border, dense=args.dense, force=args.force,
         parity_images=args.parity_images,
     )

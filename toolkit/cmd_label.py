@@ -184,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
     threads = min(2, available_cores()) if args.threads is None else check_thread_count(args.threads, "--threads", ToolkitError)
     config = AdaptationConfig(
         num_homographies=args.num_homographies, size=parse_size(args.size), max_keypoints=args.max_keypoints,
-        nms_radius=args.nms_radius, descriptor_stride=4 if args.descriptors else 0,
+        nms_radius=args.nms_radius, descriptor_stride=4 if args.descriptors else 0, subpixel=args.subpixel,
     )
     device = pick_device(args.device)
     torch.set_num_threads(threads)
@@ -217,6 +217,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--descriptors", action="store_true",
         help="also keep the teacher's dense descriptor map at 1/4 resolution (ALIKE teachers; needed by the distill recipe)",
+    )
+    parser.add_argument(
+        "--subpixel", action="store_true",
+        help="keypoints at the teacher's sub-pixel positions (5x5 soft-argmax of its score map around each peak, "
+        "temperature 0.1, as ALIKE) instead of the peak pixel",
     )
     parser.add_argument(
         "--threads", type=int, default=None,

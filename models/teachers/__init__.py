@@ -18,6 +18,7 @@ from typing import Callable
 import torch
 from torch import nn
 
+from models.keypoints import Refinement
 from models.teachers.alike import ALIKE_CONFIGS, load_alike
 from models.teachers.aliked import ALIKED_CONFIGS, load_aliked
 from models.teachers.classical import ShiTomasiTeacher
@@ -27,6 +28,9 @@ from vo_runtime.errors import first_line
 Teacher = Callable[[torch.Tensor], torch.Tensor]
 
 TEACHER_NAMES = [*ALIKE_CONFIGS, *ALIKED_CONFIGS, "superpoint:PATH", "shi-tomasi"]
+# ALIKE's own sub-pixel keypoints (its DKD detector): a soft-argmax of the score map over the 5x5 window
+# around each NMS peak, temperature 0.1.
+TEACHER_REFINEMENT = Refinement("softargmax", radius=2, temperature=0.1)
 DEFAULT_WEIGHTS_DIR = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "weights_alike"
 
 

@@ -27,6 +27,7 @@ class DetectorConfig:
     max_keypoints: int = 1000
     nms_radius: int = 4
     score_window: int = 1  # 65-way networks: `models.keypoints.keypoint_scores`; 1 = the peak pixel
+    refinement: str = ""  # 65-way networks: `models.keypoints.parse_refinement` text; "" = the model's own
     detection_threshold: float = 0.005
     border: int = 4
 

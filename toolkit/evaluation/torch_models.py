@@ -25,7 +25,7 @@ def detect_with_network(model: nn.Module, gray: np.ndarray, config: DetectorConf
     Images whose sides are not multiples of 8 are zero-padded at the bottom/right; keypoints in the padding
     or within ``config.border`` px of the real image edge are dropped.
     """
-    from models.keypoints import extract_keypoints, keypoint_heads
+    from models.keypoints import extract_keypoints, keypoint_heads, model_refinement
 
     height, width = gray.shape
     tensor = torch.from_numpy(gray).float().div_(255.0)[None, None]
@@ -36,7 +36,8 @@ def detect_with_network(model: nn.Module, gray: np.ndarray, config: DetectorConf
         logits, descriptors, projection = keypoint_heads(model, tensor)
         budget = min(config.max_keypoints, tensor.shape[2] * tensor.shape[3])
         output = extract_keypoints(logits, descriptors, budget, config.nms_radius, config.detection_threshold,
-                                   config.border, projection=projection, score_window=config.score_window)
+                                   config.border, projection=projection, score_window=config.score_window,
+                                   refinement=model_refinement(model, config.refinement))
     count = int(output["num_valid"][0])
     keypoints = output["keypoints"][:count].numpy().astype(np.float32)
     scores = output["scores"][:count].numpy().astype(np.float32)
@@ -48,9 +49,11 @@ def detect_with_network(model: nn.Module, gray: np.ndarray, config: DetectorConf
 
 
 def _network_detector(model: nn.Module, config: DetectorConfig, label: str, kind: str, settings: dict) -> Detector:
+    from models.keypoints import model_refinement
+
     model.eval()
     settings = {**settings, "max_keypoints": config.max_keypoints, "nms_radius": config.nms_radius,
-                "score_window": config.score_window,
+                "score_window": config.score_window, "refinement": model_refinement(model, config.refinement).describe(),
                 "detection_threshold": config.detection_threshold, "border": config.border}
     return Detector(label, kind, lambda gray: detect_with_network(model, gray, config), settings)
 
@@ -79,9 +82,10 @@ def superpoint_detector(path: Path, config: DetectorConfig, label: str) -> Detec
 def teacher_detector(name: str, config: DetectorConfig, label: str) -> Detector:
     """A teacher's own keypoints and descriptors (``teacher:alike-n``), so reports put student and teacher
     side by side: NMS peaks of its dense score map (same radius, border, threshold and cap as every
-    model) with its full-resolution descriptors read at those pixels."""
-    from models.keypoints import border_mask, max_pool_nms
-    from models.teachers import build_teacher
+    model) refined to sub-pixel positions as ALIKE's own detector does (`TEACHER_REFINEMENT`), with its
+    full-resolution descriptors read there bilinearly."""
+    from models.keypoints import border_mask, max_pool_nms, refine_keypoints
+    from models.teachers import TEACHER_REFINEMENT, build_teacher
 
     teacher = build_teacher(name)
     if not hasattr(teacher, "dense"):
@@ -96,14 +100,22 @@ def teacher_detector(name: str, config: DetectorConfig, label: str) -> Detector:
             values, indices = torch.topk(peaks.reshape(-1), min(config.max_keypoints, height * width))
             keep = values > config.detection_threshold
             values, indices = values[keep], indices[keep]
-            rows, cols = indices // width, indices % width
-            picked = descriptors[0][:, rows, cols].T
-        keypoints = torch.stack([cols, rows], dim=1).float().numpy()
-        return Detection(keypoints, values.float().numpy(), picked.float().numpy())
+            peaks_xy = torch.stack([indices % width, indices // width], dim=1).float()
+            keypoints = refine_keypoints(scores.float(), peaks_xy, TEACHER_REFINEMENT)
+            picked = _bilinear_rows(descriptors[0].float(), keypoints)
+        return Detection(keypoints.numpy(), values.float().numpy(), picked.numpy())
 
-    settings = {"teacher": name, "max_keypoints": config.max_keypoints, "nms_radius": config.nms_radius,
+    settings = {"teacher": name, "refinement": TEACHER_REFINEMENT.describe(), "max_keypoints": config.max_keypoints, "nms_radius": config.nms_radius,
                 "detection_threshold": config.detection_threshold, "border": config.border}
     return Detector(label, "teacher", detect, settings)
+
+
+def _bilinear_rows(dense: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """A full-resolution map [D, H, W] read bilinearly at pixel points [N, 2] (x, y) -> [N, D], unit L2 norm."""
+    _, height, width = dense.shape
+    grid = torch.stack([points[:, 0] * 2.0 / max(width - 1, 1) - 1.0, points[:, 1] * 2.0 / max(height - 1, 1) - 1.0], -1)
+    sampled = F.grid_sample(dense[None], grid.view(1, 1, -1, 2), mode="bilinear", align_corners=True)[0, :, 0].T
+    return F.normalize(sampled, p=2.0, dim=1)
 
 
 def xfeat_detector(config: DetectorConfig, label: str) -> Detector:

@@ -8,7 +8,8 @@ from dataclasses import asdict, dataclass, field
 import torch
 import torch.nn.functional as F
 
-from models.keypoints import border_mask, max_pool_nms
+from models.keypoints import border_mask, max_pool_nms, refine_keypoints
+from models.teachers import TEACHER_REFINEMENT
 from toolkit.training.homographies import (
     HomographyConfig,
     pixel_grid,
@@ -35,13 +36,17 @@ class AdaptationConfig:
     # Keep the teacher's dense descriptor map (pooled to 1/stride resolution) for descriptor distillation.
     # 0 = keypoints only. Only teachers with a `dense` method (the ALIKE family) provide one.
     descriptor_stride: int = 0
+    # Keypoints at the teacher's own sub-pixel positions: a soft-argmax of its score map in the 5x5 window
+    # around each peak (temperature 0.1, as ALIKE's keypoint detector), not the integer peak pixel.
+    subpixel: bool = False
 
     def to_dict(self) -> dict:
         settings = asdict(self)
         settings["size"] = list(self.size)
         settings["homography"]["scale"] = list(self.homography.scale)
-        if not self.descriptor_stride:  # stores written before descriptors existed stay comparable
-            del settings["descriptor_stride"]
+        for name in ("descriptor_stride", "subpixel"):  # stores written before these existed stay comparable
+            if not settings[name]:
+                del settings[name]
         return settings
 
     @staticmethod
@@ -111,6 +116,8 @@ def heatmap_to_keypoints(heatmap: torch.Tensor, config: AdaptationConfig) -> tup
     keep = values > config.threshold
     values, indices = values[keep], indices[keep]
     keypoints = torch.stack([indices % width, indices // width], dim=1).float()
+    if config.subpixel:
+        keypoints = refine_keypoints(heatmap[None, None].float(), keypoints, TEACHER_REFINEMENT)
     return keypoints, values
 
 

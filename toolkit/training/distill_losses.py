@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from models.keypoints import Refinement, heatmap_from_logits, peak_windows, refine_keypoints
 from toolkit.training.distill_pairs import sample_map
 from toolkit.training.homographies import points_inside, warp_points
 from toolkit.training.losses import cell_centres, detector_loss
@@ -39,13 +40,17 @@ class DistillLossConfig:
     # Where the InfoNCE anchors of view a lie: "cells" (every cell centre) or "keypoints" (the teacher's
     # keypoints of a, the student's map sampled there bilinearly as at inference, against each other).
     nce_anchors: str = "cells"
+    # Positions trained directly (`position_loss`): the sub-pixel keypoint the graph computes from the student's
+    # heatmap, by the refinement the model names (``model.refinement``), against the teacher's keypoint.
+    position_weight: float = 0.0
+    peakiness_weight: float = 0.0  # keeps the mass of a keypoint's window on its peak pixel
 
     def __post_init__(self) -> None:
         if self.nce_anchors not in ("cells", "keypoints"):
             raise ValueError('nce_anchors must be "cells" or "keypoints"')
         if self.temperature <= 0 or self.nce_cells < 2:
             raise ValueError("temperature must be > 0 and nce_cells >= 2")
-        if self.distill_weight < 0 or self.nce_weight < 0:
+        if min(self.distill_weight, self.nce_weight, self.position_weight, self.peakiness_weight) < 0:
             raise ValueError("loss weights must be >= 0")
 
 
@@ -174,9 +179,20 @@ def distill_loss(
     projection: DescriptorProjection,
     config: DistillLossConfig,
     generator: torch.Generator | None = None,
+    refinement: Refinement = Refinement(),
 ) -> dict[str, torch.Tensor]:
-    """The recipe's total loss and its parts (scalars; the parts detached)."""
+    """The recipe's total loss and its parts (scalars; the parts detached). ``refinement``: the model's own."""
     detector = keypoint_loss(outputs_a, batch, "a", config) + keypoint_loss(outputs_b, batch, "b", config)
+    position = peakiness = detector * 0.0
+    if config.position_weight > 0 or config.peakiness_weight > 0:
+        for view in ("a", "b"):
+            targets = [keypoint_positions(labels, offsets) if view == "a" else
+                       keypoint_positions(torch.where(valid, labels, DUSTBIN), offsets)
+                       for labels, offsets, valid in zip(batch[f"labels_{view}"], batch[f"offsets_{view}"], batch["valid_b"])]
+            view_position, view_peakiness = position_loss(
+                (outputs_a if view == "a" else outputs_b)["logits"], targets, refinement)
+            position, peakiness = position + 0.5 * view_position, peakiness + 0.5 * view_peakiness
+        detector = detector + config.position_weight * position + config.peakiness_weight * peakiness
     distill = 0.5 * (
         distillation_loss(projection(outputs_a["descriptors"]), batch["teacher_a"], batch["teacher_valid_a"])
         + distillation_loss(projection(outputs_b["descriptors"]), batch["teacher_b"], batch["teacher_valid_b"])
@@ -195,4 +211,49 @@ def distill_loss(
         "descriptor_loss": (config.distill_weight * distill + config.nce_weight * nce).detach(),
         "distill_loss": distill.detach(),
         "nce_loss": nce.detach(),
+        "position_loss": position.detach(),
+        "peakiness_loss": peakiness.detach(),
     }
+
+
+def student_peaks(heatmap: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """The integer pixel the inference would refine from, for each target: the student's highest heatmap
+    pixel in the 3x3 around the target's nearest pixel (NMS picks a peak, not the target's pixel).
+
+    heatmap [1, 1, H, W]; targets [N, 2] float (x, y) -> [N, 2] integer-valued float, inside the image.
+    """
+    _, _, height, width = heatmap.shape
+    nearest = torch.stack([targets[:, 0].round().clamp(0, width - 1), targets[:, 1].round().clamp(0, height - 1)], 1)
+    windows, offsets = peak_windows(heatmap.detach(), nearest, 1)
+    peaks = nearest + offsets[windows.argmax(dim=1)]
+    return torch.stack([peaks[:, 0].clamp(0, width - 1), peaks[:, 1].clamp(0, height - 1)], dim=1)
+
+
+def position_loss(logits: torch.Tensor, targets: list[torch.Tensor], refinement: Refinement) -> tuple[torch.Tensor, torch.Tensor]:
+    """Localisation trained directly: (mean smooth-L1 distance in px, mean peakiness) over every target.
+
+    The student's sub-pixel keypoint is `refine_keypoints` (the function the exported graph runs) from the
+    student's own peak next to each teacher keypoint; its distance to the keypoint is the position term.
+    Peakiness is 1 - the peak pixel's share of its 3x3 window's mass: low when the score is sharp, so the
+    position can be learned without the heatmap spreading out. A target near a pixel border can flip the
+    student's peak to the neighbour, where a 3x3 centroid meets its half-pixel clamp: the gradient passes
+    through the clamp, so the mass is still pulled towards the target and the peak flips back.
+
+    Args:
+        logits: [B, 65, h, w]; targets: per image [N_i, 2] (x, y) pixel positions (view pixels).
+    """
+    heatmap = heatmap_from_logits(logits.float())
+    errors, spreads = [], []
+    for index, points in enumerate(targets):
+        if points.numel() == 0:
+            continue
+        image = heatmap[index : index + 1]
+        peaks = student_peaks(image, points.to(image.device).float())
+        refined = refine_keypoints(image, peaks, refinement, gradient_through_clamp=True)
+        errors.append(F.smooth_l1_loss(refined, points.to(image.device).float(), reduction="none", beta=0.5).sum(1))
+        windows, _ = peak_windows(image, peaks, 1)
+        spreads.append(1.0 - windows[:, 4] / windows.sum(1).clamp_min(1e-6))
+    if not errors:
+        zero = logits.sum() * 0.0
+        return zero, zero
+    return torch.cat(errors).mean(), torch.cat(spreads).mean()

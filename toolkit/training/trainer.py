@@ -28,6 +28,7 @@ from torch.nn.parallel import DistributedDataParallel
 
 from models.checkpoint import build_model, save_checkpoint
 from models.deform import set_deform_strategy
+from models.keypoints import model_refinement
 from toolkit.errors import ToolkitError
 from vo_runtime.errors import first_line
 from vo_runtime.machine import check_thread_count, physical_memory_bytes
@@ -42,7 +43,7 @@ from toolkit.training.validation import validate
 from vo_runtime.progress import progress_bar
 
 STATE_NAME = "train_state.pt"
-LOG_FIELDS = ["step", "loss", "detector_loss", "descriptor_loss", "lr", "seconds_per_step"]
+LOG_FIELDS = ["step", "loss", "detector_loss", "descriptor_loss", "lr", "seconds_per_step", "position_loss"]
 VAL_FIELDS = ["step", "val_loss", "repeatability", "localisation_error", "nn_map", "matching_score"]
 
 
@@ -315,9 +316,11 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
         val_set, batch_sampler=[list(range(i, min(i + config.batch, len(val_set)))) for i in range(0, len(val_set), config.batch)]
     )
 
+    refinement = model_refinement(model)  # the position loss trains the refinement the export will run
+
     def loss_fn(outputs_a, outputs_b, batch, generator=None):
         if distilling:
-            return distill_loss(outputs_a, outputs_b, batch, projection, config.distill, generator)
+            return distill_loss(outputs_a, outputs_b, batch, projection, config.distill, generator, refinement)
         return superpoint_loss(outputs_a, outputs_b, batch, config.loss, generator)
 
     if use_amp:
@@ -354,7 +357,8 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
         step += 1
         bar.update(1)
         if step % config.log_every == 0 or step == config.steps:
-            values = torch.stack([losses["loss"].detach(), losses["detector_loss"], losses["descriptor_loss"]]).float()
+            position = losses.get("position_loss", losses["detector_loss"] * 0.0)
+            values = torch.stack([losses["loss"].detach(), losses["detector_loss"], losses["descriptor_loss"], position]).float()
             if world > 1:
                 dist.all_reduce(values)
                 values /= world
@@ -363,6 +367,7 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
                 "step": step, "loss": float(values[0]), "detector_loss": float(values[1]),
                 "descriptor_loss": float(values[2]), "lr": learning_rate,
                 "seconds_per_step": (now - tick) / config.log_every if step % config.log_every == 0 else 0.0,
+                "position_loss": float(values[3]),
             }
             tick = now
             bar.set_postfix(loss=f"{last['loss']:.3f}")

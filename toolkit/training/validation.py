@@ -7,7 +7,8 @@ from typing import Callable
 import torch
 from torch import nn
 
-from models.keypoints import border_mask, heatmap_from_logits, keypoint_scores, max_pool_nms, sample_descriptors
+from models.keypoints import (Refinement, border_mask, heatmap_from_logits, keypoint_scores, max_pool_nms,
+                              model_refinement, refine_keypoints, sample_descriptors)
 from toolkit.training.homographies import valid_mask
 
 
@@ -20,15 +21,19 @@ class ValidationConfig:
     distance_px: float = 3.0  # a keypoint repeats / a match is correct within this distance
 
 
-def detect(logits: torch.Tensor, mask: torch.Tensor, config: ValidationConfig) -> torch.Tensor:
-    """logits [1, 65, h, w], mask [H, W] -> top-k keypoints [K, 2] (x, y) where mask > 0."""
-    scores = keypoint_scores(heatmap_from_logits(logits.float()), config.score_window)
+def detect(logits: torch.Tensor, mask: torch.Tensor, config: ValidationConfig,
+           refinement: Refinement | None = None) -> torch.Tensor:
+    """logits [1, 65, h, w], mask [H, W] -> top-k keypoints [K, 2] (x, y) where mask > 0, refined to sub-pixel
+    positions by ``refinement`` as the exported graph does (None: the integer peaks)."""
+    probability = heatmap_from_logits(logits.float())
+    scores = keypoint_scores(probability, config.score_window)
     heatmap = max_pool_nms(scores, config.nms_radius)[0, 0]
     height, width = heatmap.shape
     heatmap = heatmap * border_mask(height, width, config.border, heatmap) * mask
     k = min(config.num_keypoints, int((heatmap > 0).sum()))
     values, indices = torch.topk(heatmap.reshape(-1), k)
-    return torch.stack([indices % width, indices // width], dim=1).float()
+    peaks = torch.stack([indices % width, indices // width], dim=1).float()
+    return peaks if refinement is None else refine_keypoints(probability, peaks, refinement)
 
 
 @torch.no_grad()
@@ -54,6 +59,7 @@ def validate(
     )
 
     config = config or ValidationConfig()
+    refinement = model_refinement(model)
     was_training = model.training
     model.eval()
     sums = {"repeatability": 0.0, "localisation_error": 0.0, "nn_map": 0.0, "matching_score": 0.0}
@@ -68,8 +74,8 @@ def validate(
         masks_b = valid_mask(batch["homography"], size, erode=config.border)
         for i in range(batch["image_a"].shape[0]):
             ones = torch.ones(size, device=device)
-            keypoints_a = detect(outputs_a["logits"][i : i + 1], ones, config)
-            keypoints_b = detect(outputs_b["logits"][i : i + 1], masks_b[i, 0], config)
+            keypoints_a = detect(outputs_a["logits"][i : i + 1], ones, config, refinement)
+            keypoints_b = detect(outputs_b["logits"][i : i + 1], masks_b[i, 0], config, refinement)
             descriptors_a = sample_descriptors(outputs_a["descriptors"][i].float(), keypoints_a).cpu().numpy()
             descriptors_b = sample_descriptors(outputs_b["descriptors"][i].float(), keypoints_b).cpu().numpy()
             points_a, points_b = keypoints_a.cpu().numpy(), keypoints_b.cpu().numpy()
