@@ -9,7 +9,7 @@ import json
 import re
 from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -41,11 +41,20 @@ def table_rows(report: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     for model in report["models"]:
         for group, summary in model["summary"].items():
             cells = [model["label"], group]
+            intervals = summary.get("intervals", {})
             for key, _, fmt in COLUMNS:
-                value = summary.get(key)
-                cells.append("-" if value is None else fmt.format(value))
+                cells.append(_cell(summary.get(key), intervals.get(key), fmt))
             rows.append(cells)
     return header, rows
+
+
+def _cell(value: Any, interval: list[float] | None, fmt: str) -> str:
+    """``0.440`` or, with a bootstrap interval, ``0.440 [0.410, 0.470]``; ``-`` for an undefined value."""
+    if value is None:
+        return "-"
+    if interval is None:
+        return fmt.format(value)
+    return f"{fmt.format(value)} [{fmt.format(interval[0])}, {fmt.format(interval[1])}]"
 
 
 def format_terminal_table(report: dict[str, Any]) -> str:
@@ -63,14 +72,16 @@ def format_markdown(report: dict[str, Any]) -> str:
     protocol = report["protocol"]
     size = "native" if protocol["size"] is None else "x".join(str(v) for v in protocol["size"])
     header, rows = table_rows(report)
+    data = report["data"] if isinstance(report["data"], list) else [report["data"]]
     lines = [
-        f"### `toolkit eval {report['command']}` on `{Path(report['data']).name}`",
+        f"### `toolkit eval {report['command']}` on {', '.join(f'`{Path(d).name}`' for d in data)}",
         "",
         f"Size {size}, at most {protocol['max_keypoints']} keypoints, NMS radius {protocol['nms_radius']} "
         f"(networks run in Python), correctness threshold {protocol['correct_threshold']:g} px, RANSAC "
         f"threshold {protocol['ransac_threshold']:g} px, contrast normalisation {protocol['normalise']}. "
         "Definitions: docs/evaluation.md.",
         "",
+        *[line for note in report.get("notes", []) for line in (note, "")],
         "| " + " | ".join(header) + " |",
         "|" + "|".join("---" for _ in header) + "|",
     ]
@@ -137,10 +148,10 @@ def _draw_pair(axes: Any, example: PairExample, threshold: float, label: str) ->
 EVAL_REPORT = OutputKind("eval-report", "an eval report")
 
 
-def claim_report_dir(path: Path) -> AbstractContextManager[OutputClaim]:
-    """Hold ``path`` for a report: refused below a file, on a file, or on a non-empty folder that is not only
-    an earlier report (`vo_runtime.outputs`)."""
-    return claim_output_dir(path, EVAL_REPORT, True)
+def claim_report_dir(path: Path, inputs: Iterable[Path] = ()) -> AbstractContextManager[OutputClaim]:
+    """Hold ``path`` for a report: refused below a file, on a file, on a non-empty folder that is not only
+    an earlier report, or in, on or above one of ``inputs`` (`vo_runtime.outputs`)."""
+    return claim_output_dir(path, EVAL_REPORT, True, inputs)
 
 
 def write_report(claim: OutputClaim, report: dict[str, Any], examples: dict[str, PairExample]) -> None:

@@ -77,15 +77,20 @@ class RecentCache:
 
 
 class ImageCache:
-    """Resized (and optionally contrast-stretched) gray images by path, read through a `RecentCache`."""
+    """Resized (and optionally contrast-stretched) gray images by path, read through a `RecentCache`.
 
-    def __init__(self, size: tuple[int, int] | None, normalise: str = "none") -> None:
+    ``read`` turns a path into the HxW uint8 gray image: the file by default, or images held in memory
+    (`toolkit eval synth`), which then go through the same resizing as files do."""
+
+    def __init__(self, size: tuple[int, int] | None, normalise: str = "none",
+                 read: Callable[[Any], np.ndarray] = load_gray) -> None:
         self.size = size
         self.normalise = normalise
+        self.read = read
         self._images = RecentCache()
 
     def _load(self, path) -> tuple[np.ndarray, np.ndarray]:
-        image, scale = resize_with_matrix(load_gray(path), self.size)
+        image, scale = resize_with_matrix(self.read(path), self.size)
         if self.normalise == "minmax":
             image = stretch_contrast(image)
         return image, scale
@@ -129,6 +134,18 @@ def _finite_mean(values: list[float]) -> float | None:
     return float(np.mean(finite)) if finite else None
 
 
+# The per-pair value behind each dataset number (NaN: undefined in that pair, left out of the mean). The
+# summary and its bootstrap intervals (`toolkit.evaluation.intervals`) both read them from here.
+PAIR_VALUES: dict[str, Callable[[PairMetrics], float]] = {
+    "num_keypoints": lambda m: m.num_keypoints,
+    "repeatability": lambda m: m.repeatability,
+    "localisation_error": lambda m: m.localisation_error,
+    "nn_map": lambda m: m.nn_map,
+    "matching_score": lambda m: m.matching_score,
+    **{f"homography_{e}px": (lambda m, e=e: float(m.corner_error <= e)) for e in CORNER_THRESHOLDS},
+}
+
+
 def summarise(metrics: list[PairMetrics]) -> dict[str, Any]:
     """Means over pairs; homography accuracy is the fraction of pairs with corner error <= epsilon.
 
@@ -136,27 +153,26 @@ def summarise(metrics: list[PairMetrics]) -> dict[str, Any]:
     """
     if not metrics:
         return {"num_pairs": 0}
-    summary: dict[str, Any] = {
-        "num_pairs": len(metrics),
-        "num_keypoints": float(np.mean([m.num_keypoints for m in metrics])),
-        "repeatability": float(np.mean([m.repeatability for m in metrics])),
-        "localisation_error": _finite_mean([m.localisation_error for m in metrics]),
-        "nn_map": float(np.mean([m.nn_map for m in metrics])),
-        "matching_score": float(np.mean([m.matching_score for m in metrics])),
-    }
-    for epsilon in CORNER_THRESHOLDS:
-        summary[f"homography_{epsilon}px"] = float(np.mean([m.corner_error <= epsilon for m in metrics]))
+    summary: dict[str, Any] = {"num_pairs": len(metrics)}
+    for key, value_of in PAIR_VALUES.items():
+        summary[key] = _finite_mean([value_of(m) for m in metrics])
     return summary
 
 
-def group_summaries(result: ModelResult) -> dict[str, dict[str, Any]]:
-    """Summaries for ``all`` and each HPatches group present (``i``, ``v``, ``other``), ``all`` first."""
-    groups: dict[str, list[PairMetrics]] = {"all": []}
-    for group, metrics in result.pairs.values():
-        groups["all"].append(metrics)
+def grouped_pairs(result: ModelResult) -> dict[str, dict[str, PairMetrics]]:
+    """Pair name -> metrics for ``all`` and each HPatches group present (``i``, ``v``, ``dark``, ``other``),
+    ``all`` first, pairs in the order they were evaluated."""
+    groups: dict[str, dict[str, PairMetrics]] = {"all": {}}
+    for name, (group, metrics) in result.pairs.items():
+        groups["all"][name] = metrics
         if group != "pairs":   # registered pairs have one group only, which is "all"
-            groups.setdefault(group, []).append(metrics)
-    return {name: summarise(values) for name, values in groups.items()}
+            groups.setdefault(group, {})[name] = metrics
+    return groups
+
+
+def group_summaries(result: ModelResult) -> dict[str, dict[str, Any]]:
+    """Summaries for ``all`` and each HPatches group present, ``all`` first (`grouped_pairs`)."""
+    return {name: summarise(list(pairs.values())) for name, pairs in grouped_pairs(result).items()}
 
 
 def pair_records(result: ModelResult) -> list[dict[str, Any]]:
