@@ -64,6 +64,10 @@ class OnboardLight:
     photons_per_level: float = 4.0   # shot noise: electrons per grey level (fewer: noisier)
     read_sigma: float = 2.0      # Gaussian read noise, grey levels
     blur_px: tuple[float, float] = (1.0, 5.0)  # motion blur length range, pixels (frame-seeded)
+    # The anti-aliased line of a short blur kernel is not symmetric about its centre, so it also shifts the
+    # image by up to half a pixel (measured: 0.5 px at length 2). Pixel-registered pairs (`toolkit eval synth`)
+    # need a kernel without that shift: the line averaged with itself turned by 180 degrees.
+    centred_blur: bool = False
 
     def __call__(self, gray: np.ndarray, seed: int) -> np.ndarray:
         """HxW uint8 in and out."""
@@ -103,6 +107,8 @@ class OnboardLight:
         end = (centre + half * math.cos(direction), centre + half * math.sin(direction))
         cv2.line(kernel, tuple(int(round(v * 16)) for v in start), tuple(int(round(v * 16)) for v in end), 1.0,
                  thickness=1, lineType=cv2.LINE_AA, shift=4)
+        if self.centred_blur:
+            kernel = kernel + kernel[::-1, ::-1]
         return cv2.filter2D(image, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REFLECT)
 
     def describe(self) -> str:
