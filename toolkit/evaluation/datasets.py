@@ -34,7 +34,8 @@ PAIR_IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".ppm", ".bmp")
 class ImagePair:
     """One evaluation pair: image ``path_a`` is mapped onto ``path_b`` by ``homography`` (3x3, float64).
 
-    ``group`` is ``"i"`` (illumination), ``"v"`` (viewpoint) or ``"pairs"``; ``name`` is unique in a dataset.
+    ``group`` is ``"i"`` (illumination), ``"v"`` (viewpoint), ``"dark"`` (synthetic darkness), ``"other"`` or
+    ``"pairs"``; ``name`` is unique in a dataset.
     """
 
     name: str
@@ -79,10 +80,10 @@ def _find_image(folder: Path, stem: str, extensions: tuple[str, ...]) -> Path | 
 
 
 def _sequence_group(name: str) -> str:
-    if name.startswith("i_"):
-        return "i"
-    if name.startswith("v_"):
-        return "v"
+    """HPatches' ``i_`` and ``v_`` groups, and ``dark_`` (the darkness sequences `toolkit eval synth` writes)."""
+    for prefix in ("i", "v", "dark"):
+        if name.startswith(prefix + "_"):
+            return prefix
     return "other"
 
 
