@@ -5,15 +5,16 @@ import argparse
 import math
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from toolkit import __version__
 from toolkit.atomic import OutputClaim
 from toolkit.errors import ToolkitError
 from toolkit.evaluation.datasets import ImagePair, parse_size, read_hpatches, read_registered_pairs
-from toolkit.evaluation.detectors import DetectorConfig, load_detector
+from toolkit.evaluation.detectors import Detector, DetectorConfig, load_detector
 from toolkit.evaluation.report import claim_report_dir, format_terminal_table, write_report
-from toolkit.evaluation.runner import EvalConfig, ImageCache, evaluate_model, group_summaries, pair_records
+from toolkit.evaluation.runner import (EvalConfig, ImageCache, ModelResult, PairExample, evaluate_model,
+                                       group_summaries, pair_records)
 
 MODEL_HELP = ("model to evaluate, repeatable: default / default-relu (the shipped weights), orb, sift, an artefact "
               "directory, a checkpoint (.safetensors/.pth), superpoint:PATH, teacher:alike-n (the teacher's own "
@@ -43,8 +44,10 @@ is optional and the identity when absent (pixel-registered pairs such as LOL low
 """
 
 
-def _add_common_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", required=True, type=Path, help="dataset directory")
+def add_common_options(parser: argparse.ArgumentParser, data: bool = True) -> None:
+    """The options every `toolkit eval` dataset shares (``--data`` where the data is a folder to read)."""
+    if data:
+        parser.add_argument("--data", required=True, type=Path, help="dataset directory")
     parser.add_argument("--model", action="extend", nargs="+", default=None, metavar="M", help=MODEL_HELP)
     parser.add_argument("--size", default="240x320", help="HxW to resize every image to, or native (default 240x320)")
     parser.add_argument("--max-keypoints", type=int, default=1000, help="keypoint budget per image (default 1000)")
@@ -65,7 +68,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Evaluate keypoint models (checkpoints, exported artefacts, SuperPoint, ORB, SIFT) through "
                     "one code path, with SuperPoint's detector and descriptor metrics.",
         epilog="examples:\n  toolkit eval hpatches --data ../shared/data/hpatches_v_dogman --model orb sift\n"
-               "  toolkit eval pairs --data ../shared/data/lowlight_pairs --model orb -o reports/lowlight",
+               "  toolkit eval pairs --data ../shared/data/lowlight_pairs --model orb -o reports/lowlight\n"
+               "  toolkit eval synth --images ../shared/data/tum_fr2_desk_snippet --model default sift -o reports/tum",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = parser.add_subparsers(dest="eval_command", metavar="<dataset>")
@@ -73,17 +77,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     hpatches = sub.add_parser("hpatches", help="HPatches-layout sequences (1.ppm..6.ppm, H_1_k)",
                               description="Evaluate models on HPatches-layout sequence folders.",
                               epilog=HPATCHES_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    _add_common_options(hpatches)
+    add_common_options(hpatches)
     hpatches.set_defaults(func=run)
     pairs = sub.add_parser("pairs", help="registered pairs (low/<n>.png vs high/<n>.png, optional H)",
                            description="Evaluate models on registered image pairs with an optional homography.",
                            epilog=PAIRS_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    _add_common_options(pairs)
+    add_common_options(pairs)
     pairs.add_argument("--first", default="low", help="folder of the first images (default low)")
     pairs.add_argument("--second", default="high", help="folder of the second images (default high)")
     pairs.add_argument("--homographies", default="homographies",
                        help="folder of optional <n>.txt homographies first -> second (default homographies)")
     pairs.set_defaults(func=run)
+    from toolkit.cmd_eval_synth import register_synth  # it builds on this module's helpers
+
+    register_synth(sub)
 
 
 def _read_pairs(args: argparse.Namespace) -> list[ImagePair]:
@@ -101,7 +108,8 @@ def _unique_labels(labels: list[str]) -> list[str]:
     return unique
 
 
-def run(args: argparse.Namespace) -> int:
+def protocol_configs(args: argparse.Namespace) -> tuple[EvalConfig, DetectorConfig]:
+    """The checked protocol options; `ToolkitError` for a bad value."""
     if args.max_keypoints < 1:
         raise ToolkitError("--max-keypoints must be at least 1")
     if args.nms < 0 or not (math.isfinite(args.threshold) and args.threshold > 0):  # NaN compares False
@@ -114,30 +122,34 @@ def run(args: argparse.Namespace) -> int:
     config = EvalConfig(size=parse_size(args.size), correct_threshold=args.threshold, normalise=args.normalise)
     detector_config = DetectorConfig(max_keypoints=args.max_keypoints, nms_radius=args.nms,
                                      score_window=args.score_window)
+    return config, detector_config
+
+
+def run(args: argparse.Namespace) -> int:
+    config, detector_config = protocol_configs(args)
     with claim_report_dir(args.output) if args.output is not None else nullcontext() as claim:
-        return _evaluate(args, config, detector_config, claim)
+        pairs = _read_pairs(args)
+        detectors = load_detectors(args.model, detector_config)
+        report, examples = evaluate_models(detectors, pairs, ImageCache(config.size, config.normalise), config,
+                                           base_report(args, str(args.data.resolve()), config))
+        finish_report(report, examples, claim, args.output)
+    return 0
 
 
-def _evaluate(args: argparse.Namespace, config: EvalConfig, detector_config: DetectorConfig,
-              claim: OutputClaim | None) -> int:
-    """Every model on every pair, the table printed and, with ``claim``, the report written there."""
-    pairs = _read_pairs(args)
-    # Load every model before the first pair, so a bad spec fails in a second rather than after a long run.
-    detectors = [load_detector(spec, detector_config) for spec in (args.model or ["default", "orb", "sift"])]
+def load_detectors(specs: list[str] | None, detector_config: DetectorConfig) -> list[Detector]:
+    """Every ``--model`` (default: default orb sift), labels made unique. Loaded before the first pair, so a
+    bad spec fails in a second rather than after a long run."""
+    detectors = [load_detector(spec, detector_config) for spec in (specs or ["default", "orb", "sift"])]
     for detector, label in zip(detectors, _unique_labels([d.label for d in detectors])):
         detector.label = label
-    images = ImageCache(config.size, config.normalise)
-    models: list[dict[str, Any]] = []
-    examples = {}
-    for detector in detectors:
-        result = evaluate_model(detector, pairs, config, images)
-        models.append({"label": result.label, "kind": result.kind, "settings": result.settings,
-                       "summary": group_summaries(result), "pairs": pair_records(result)})
-        if result.examples:
-            examples[result.label] = result.examples
-    report = {
+    return detectors
+
+
+def base_report(args: argparse.Namespace, data: str | list[str], config: EvalConfig) -> dict[str, Any]:
+    """The report's header: command, data, version and protocol; ``models`` is filled by `evaluate_models`."""
+    return {
         "command": args.eval_command,
-        "data": str(args.data.resolve()),
+        "data": data,
         "toolkit_version": __version__,
         "protocol": {"size": list(config.size) if config.size else None, "max_keypoints": args.max_keypoints,
                      "nms_radius": args.nms, "score_window": args.score_window,
@@ -145,10 +157,30 @@ def _evaluate(args: argparse.Namespace, config: EvalConfig, detector_config: Det
                      "ransac_threshold": config.ransac_threshold, "normalise": config.normalise,
                      "homography_epsilons_px": [1, 3, 5],
                      "matcher": "mutual nearest neighbour (L2 for float, Hamming for binary descriptors)"},
-        "models": models,
+        "models": [],
     }
+
+
+def evaluate_models(detectors: list[Detector], pairs: list[ImagePair], images: ImageCache, config: EvalConfig,
+                    report: dict[str, Any],
+                    summarise_result: Callable[[ModelResult], dict[str, Any]] = group_summaries,
+                    ) -> tuple[dict[str, Any], dict[str, list[PairExample]]]:
+    """Every model on every pair: ``report`` with its models filled in, and the example pairs by label.
+    ``summarise_result`` makes a model's per-group summaries (`group_summaries`, plus intervals for synth)."""
+    examples = {}
+    for detector in detectors:
+        result = evaluate_model(detector, pairs, config, images)
+        report["models"].append({"label": result.label, "kind": result.kind, "settings": result.settings,
+                                 "summary": summarise_result(result), "pairs": pair_records(result)})
+        if result.examples:
+            examples[result.label] = result.examples
+    return report, examples
+
+
+def finish_report(report: dict[str, Any], examples: dict[str, list[PairExample]], claim: OutputClaim | None,
+                  output: Path | None) -> None:
+    """The table printed and, with ``claim``, the report written there."""
     print(format_terminal_table(report))
     if claim is not None:
         write_report(claim, report, examples)
-        print(f"wrote {args.output}: results.json, results.md and the match plots")
-    return 0
+        print(f"wrote {output}: results.json, results.md and the match plots")
