@@ -15,7 +15,7 @@ from toolkit.evaluation.intervals import BootstrapSettings, bootstrap_mean_inter
 from toolkit.evaluation.metrics import warp_points
 from toolkit.evaluation.synth import SynthConfig, content_digest, generate_sequences
 from toolkit.evaluation.synth_frames import find_frames
-from toolkit.evaluation.synth_viewpoint import corner_motion
+from toolkit.evaluation.synth_viewpoint import CaptureNoise, corner_motion
 
 SMALL = (240, 320)  # rendered size of the sequences here: small and fast
 
@@ -88,7 +88,8 @@ def test_viewpoint_homographies_map_checkerboard_corners_where_they_say(tmp_path
 @pytest.mark.parametrize("shape", [(480, 640), (200, 720), (560, 360)])  # 4:3, KITTI-wide, portrait
 def test_viewpoint_targets_show_the_scene_not_a_border_and_go_easy_to_hard(tmp_path, shape):
     folder = write_frames(tmp_path / "board", {"board.png": checkerboard(shape, 24)})
-    for sequence in generate([folder], sequences=3, kinds=("viewpoint",)):
+    exact = CaptureNoise(gain=0.0, gamma=0.0, sigma=0.0)  # exact warps: a border would show as black
+    for sequence in generate([folder], sequences=3, kinds=("viewpoint",), capture=exact):
         assert len(sequence.images) == 6 and all(image.shape == SMALL for image in sequence.images)
         assert min(int(image.min()) for image in sequence.images) >= 45  # the board's darkest grey is 50
         motion = [corner_motion(h, SMALL) for h in sequence.homographies]
@@ -201,3 +202,16 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys):
     # a report inside a frames folder would be read as frames by the next run
     code, _, err = run_cli(capsys, "eval", "synth", "--images", frames, "--model", "orb", "-o", frames / "report")
     assert code == 2 and "inside the input" in err and sorted(p.name for p in frames.iterdir()) == ["a.png"]
+
+
+def test_each_view_of_a_viewpoint_sequence_is_its_own_exposure(tmp_path):
+    folder = write_frames(tmp_path / "board", {"board.png": checkerboard((480, 640), 24)})
+    noisy = generate([folder], sequences=1, kinds=("viewpoint",))[0]
+    exact = generate([folder], sequences=1, kinds=("viewpoint",), capture=CaptureNoise(0.0, 0.0, 0.0))[0]
+    assert all(np.array_equal(a, b) for a, b in zip(noisy.homographies, exact.homographies))  # same geometry
+    for with_noise, without in zip(noisy.images, exact.images):
+        # what a smooth tone curve of the exact view does not explain is the sensor noise (~2 grey levels)
+        curve = np.polyval(np.polyfit(without.ravel(), with_noise.ravel(), 2), without.astype(float))
+        assert 1.0 < float(np.std(with_noise - curve)) < 3.0
+    gains = [float(a.mean()) / float(b.mean()) for a, b in zip(noisy.images, exact.images)]
+    assert max(gains) - min(gains) > 0.02  # exposures differ from view to view

@@ -21,8 +21,8 @@ import numpy as np
 from toolkit.evaluation.datasets import ImagePair, load_gray
 from toolkit.evaluation.synth_darkness import darkness_targets
 from toolkit.evaluation.synth_frames import Frame, pick_frames
-from toolkit.evaluation.synth_viewpoint import (CROP_SHARE, HomographyRanges, reference_crop, render, shrink_source,
-                                                viewpoint_targets)
+from toolkit.evaluation.synth_viewpoint import (CROP_SHARE, CaptureNoise, HomographyRanges, capture, reference_crop,
+                                                render, shrink_source, viewpoint_targets)
 
 # kind -> (index, which fixes its seeds and frame picks; name prefix, which is its HPatches group)
 KINDS: dict[str, tuple[int, str]] = {"viewpoint": (0, "v"), "darkness": (1, "dark")}
@@ -39,6 +39,7 @@ class SynthConfig:
     kinds: tuple[str, ...] = ("viewpoint", "darkness")
     out_size: tuple[int, int] = (480, 640)
     ranges: HomographyRanges = field(default_factory=HomographyRanges)
+    capture: CaptureNoise = field(default_factory=CaptureNoise)  # viewpoint sequences: each view its own exposure
 
 
 @dataclass
@@ -79,6 +80,9 @@ def generate_sequence(kind: str, frame: Frame, repeat: int, config: SynthConfig,
     reference = render(source, to_source, config.out_size)
     if kind == "viewpoint":
         targets = viewpoint_targets(source, to_source, config.out_size, TARGETS, rng, config.ranges)
+        # drawn after the geometry, so the homographies do not depend on the noise settings
+        reference = capture(reference, rng, config.capture)
+        targets = [(capture(image, rng, config.capture), homography) for image, homography in targets]
     else:
         targets = darkness_targets(reference, rng)
     return SynthSequence(name, kind, frame, repeat, [reference] + [image for image, _ in targets],
@@ -137,7 +141,7 @@ def describe(frames: list[Frame], sequences: list[SynthSequence], config: SynthC
     """What was generated, for results.json and the written folder: settings, and each sequence's source."""
     return {"seed": config.seed, "sequences_per_kind": config.sequences, "kinds": list(config.kinds),
             "image_size": list(config.out_size), "crop_share": CROP_SHARE, "frames_found": len(frames),
-            "homography_ranges": asdict(config.ranges),
+            "homography_ranges": asdict(config.ranges), "capture_noise": asdict(config.capture),
             "sequences": [{"name": s.name, "kind": s.kind, "source": str(s.source.path), "source_key": s.source.key,
                            "source_sha256": s.source.sha256, "repeat": s.repeat} for s in sequences]}
 

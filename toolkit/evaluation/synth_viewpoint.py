@@ -39,6 +39,27 @@ class HomographyRanges:
     shift: float = 0.1
 
 
+@dataclass(frozen=True)
+class CaptureNoise:
+    """Each view of a viewpoint sequence is its own exposure: a gain in ``1 +- gain``, a gamma in
+    ``1 +- gamma`` and Gaussian sensor noise of ``sigma`` grey levels, drawn independently per image. Without
+    it a target is an exact warp of the reference's pixels, which real viewpoint pairs never are (SIFT then
+    solved 98 % of the pairs within 1 px, 60 % on hpatches_v_dogman). All zero: exact warps."""
+
+    gain: float = 0.15
+    gamma: float = 0.1
+    sigma: float = 2.0
+
+
+def capture(image: np.ndarray, rng: np.random.Generator, noise: CaptureNoise) -> np.ndarray:
+    """``image`` (HxW uint8) as one exposure of `CaptureNoise`; the same geometry, so registration holds."""
+    gain = 1.0 + rng.uniform(-noise.gain, noise.gain)
+    gamma = 1.0 + rng.uniform(-noise.gamma, noise.gamma)
+    exposed = 255.0 * np.clip(gain * (image.astype(np.float64) / 255.0) ** gamma, 0.0, 1.0)
+    noisy = exposed + rng.normal(0.0, noise.sigma, size=image.shape) if noise.sigma > 0 else exposed
+    return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+
+
 def reference_crop(source_shape: tuple[int, int], out_size: tuple[int, int]) -> tuple[float, np.ndarray]:
     """The reference view of a source frame: ``(shrink, R)``.
 
