@@ -133,3 +133,16 @@ def test_export_bakes_the_refinement_in_and_records_it(tmp_path, capsys):
     assert main(["export", "--target", "tx2", "--checkpoint", str(checkpoint), "--refine", "median",
                  "-o", str(tmp_path / "bad")]) == 2
     assert "error: --refine" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+
+
+def test_eval_runs_a_checkpoint_with_another_refinement(shared_data, tmp_path, capsys):
+    data = shared_data / "hpatches_v_dogman"
+    report = tmp_path / "report"
+    assert main(["eval", "hpatches", "--data", str(data), "--model", "default", "--refine", "quadratic",
+                 "--max-keypoints", "200", "-o", str(report)]) == 0
+    results = json.loads((report / "results.json").read_text())
+    assert results["models"][0]["settings"]["refinement"] == "quadratic"
+    assert results["protocol"]["refinement"] == "quadratic"
+    capsys.readouterr()
+    assert main(["eval", "hpatches", "--data", str(data), "--model", "default", "--refine", "softargmax:4"]) == 2
+    assert capsys.readouterr().err.startswith("error: --refine")

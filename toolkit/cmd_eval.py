@@ -55,6 +55,9 @@ def add_common_options(parser: argparse.ArgumentParser, data: bool = True) -> No
     parser.add_argument("--score-window", type=int, default=1, metavar="PX",
                         help="odd window whose keypoint probability mass ranks a heatmap peak, for 65-way networks "
                         "run in Python (default 1: the peak itself, as export)")
+    parser.add_argument("--refine", default="", metavar="METHOD",
+                        help="how a heatmap peak becomes a sub-pixel keypoint, for 65-way networks run in Python: "
+                        "centroid[:W], quadratic or softargmax[:W[:T]] (default: the one the checkpoint names)")
     parser.add_argument("--threshold", type=float, default=3.0,
                         help="correctness distance in px for repeatability, mAP and matching score (default 3)")
     parser.add_argument("--normalise", choices=("none", "minmax"), default="none",
@@ -115,13 +118,18 @@ def protocol_configs(args: argparse.Namespace) -> tuple[EvalConfig, DetectorConf
     if args.nms < 0 or not (math.isfinite(args.threshold) and args.threshold > 0):  # NaN compares False
         raise ToolkitError(f"--nms must be >= 0 and --threshold a positive number of pixels, got {args.nms} and "
                            f"{args.threshold}")
-    from models.keypoints import is_score_window
+    from models.keypoints import is_score_window, parse_refinement
 
     if not is_score_window(args.score_window):
         raise ToolkitError(f"--score-window must be an odd number of pixels >= 1, got {args.score_window}")
+    if args.refine:
+        try:
+            parse_refinement(args.refine)
+        except ValueError as exc:
+            raise ToolkitError(f"--refine: {exc}") from None
     config = EvalConfig(size=parse_size(args.size), correct_threshold=args.threshold, normalise=args.normalise)
     detector_config = DetectorConfig(max_keypoints=args.max_keypoints, nms_radius=args.nms,
-                                     score_window=args.score_window)
+                                     score_window=args.score_window, refinement=args.refine)
     return config, detector_config
 
 
@@ -152,7 +160,7 @@ def base_report(args: argparse.Namespace, data: str | list[str], config: EvalCon
         "data": data,
         "toolkit_version": __version__,
         "protocol": {"size": list(config.size) if config.size else None, "max_keypoints": args.max_keypoints,
-                     "nms_radius": args.nms, "score_window": args.score_window,
+                     "nms_radius": args.nms, "score_window": args.score_window, "refinement": args.refine or "the model's",
                      "correct_threshold": config.correct_threshold,
                      "ransac_threshold": config.ransac_threshold, "normalise": config.normalise,
                      "homography_epsilons_px": [1, 3, 5],
