@@ -134,7 +134,7 @@ def test_the_readme_counts_are_the_models_counts() -> None:
 
 
 def test_eval_help_and_docs_name_the_same_default_models() -> None:
-    from toolkit.cmd_eval import MODEL_HELP
+    from toolkit.eval_common import MODEL_HELP
 
     assert "(default: default orb sift)" in MODEL_HELP
     assert "default `default orb sift`" in (REPO / "docs" / "evaluation.md").read_text()

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from toolkit.atomic import OutputClaim, OutputKind, claim_output_dir
-from toolkit.cmd_eval import add_common_options, base_report, evaluate_models, finish_report, load_detectors, \
+from toolkit.eval_common import add_common_options, base_report, evaluate_models, finish_report, load_detectors, \
     protocol_configs
 from toolkit.errors import ToolkitError
 from toolkit.evaluation.intervals import BootstrapSettings, add_intervals
