@@ -146,3 +146,12 @@ def test_eval_runs_a_checkpoint_with_another_refinement(shared_data, tmp_path, c
     capsys.readouterr()
     assert main(["eval", "hpatches", "--data", str(data), "--model", "default", "--refine", "softargmax:4"]) == 2
     assert capsys.readouterr().err.startswith("error: --refine")
+
+
+def test_position_loss_on_detections_only_skips_targets_without_a_student_peak():
+    logits = _cell_logits(12.0, 11.0)  # one blob: a detection at (12, 11), nothing elsewhere
+    targets = [torch.tensor([[12.3, 10.8], [20.0, 4.0]])]
+    both, _ = position_loss(logits, targets, Refinement("centroid"))
+    detected_only, _ = position_loss(logits, targets, Refinement("centroid"), only_detected=True)
+    assert math.isclose(float(detected_only), 0.3 ** 2 + 0.2 ** 2, rel_tol=1e-3)  # the blob's target alone
+    assert float(both) > float(detected_only)

@@ -44,8 +44,13 @@ class DistillLossConfig:
     # heatmap, by the refinement the model names (``model.refinement``), against the teacher's keypoint.
     position_weight: float = 0.0
     peakiness_weight: float = 0.0  # keeps the mass of a keypoint's window on its peak pixel
+    # Which teacher keypoints the position loss pulls on: "all" (one per labelled cell) or "detected" (those
+    # whose student peak is a detection: a local maximum within the NMS radius above the detection threshold).
+    position_targets: str = "all"
 
     def __post_init__(self) -> None:
+        if self.position_targets not in ("all", "detected"):
+            raise ValueError('position_targets must be "all" or "detected"')
         if self.nce_anchors not in ("cells", "keypoints"):
             raise ValueError('nce_anchors must be "cells" or "keypoints"')
         if self.temperature <= 0 or self.nce_cells < 2:
@@ -190,7 +195,8 @@ def distill_loss(
                        keypoint_positions(torch.where(valid, labels, DUSTBIN), offsets)
                        for labels, offsets, valid in zip(batch[f"labels_{view}"], batch[f"offsets_{view}"], batch["valid_b"])]
             view_position, view_peakiness = position_loss(
-                (outputs_a if view == "a" else outputs_b)["logits"], targets, refinement)
+                (outputs_a if view == "a" else outputs_b)["logits"], targets, refinement,
+                config.position_targets == "detected")
             position, peakiness = position + 0.5 * view_position, peakiness + 0.5 * view_peakiness
         detector = detector + config.position_weight * position + config.peakiness_weight * peakiness
     distill = 0.5 * (
@@ -229,7 +235,21 @@ def student_peaks(heatmap: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     return torch.stack([peaks[:, 0].clamp(0, width - 1), peaks[:, 1].clamp(0, height - 1)], dim=1)
 
 
-def position_loss(logits: torch.Tensor, targets: list[torch.Tensor], refinement: Refinement) -> tuple[torch.Tensor, torch.Tensor]:
+DETECTION_NMS_RADIUS, DETECTION_THRESHOLD = 4, 0.005  # as `toolkit export` bakes into the graph by default
+
+
+def detected(heatmap: torch.Tensor, peaks: torch.Tensor) -> torch.Tensor:
+    """[N] bool: the integer ``peaks`` [N, 2] of ``heatmap`` [1, 1, H, W] that the graph would keep (a maximum
+    within the NMS radius, above the detection threshold)."""
+    _, _, _, width = heatmap.shape
+    pooled = F.max_pool2d(heatmap.detach(), 2 * DETECTION_NMS_RADIUS + 1, stride=1, padding=DETECTION_NMS_RADIUS)
+    flat = (peaks[:, 1] * width + peaks[:, 0]).long()
+    values = heatmap.detach().reshape(-1)[flat]
+    return (values == pooled.reshape(-1)[flat]) & (values > DETECTION_THRESHOLD)
+
+
+def position_loss(logits: torch.Tensor, targets: list[torch.Tensor], refinement: Refinement,
+                  only_detected: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Localisation trained directly: (mean smooth-L1 distance in px, mean peakiness) over every target.
 
     The student's sub-pixel keypoint is `refine_keypoints` (the function the exported graph runs) from the
@@ -248,9 +268,15 @@ def position_loss(logits: torch.Tensor, targets: list[torch.Tensor], refinement:
         if points.numel() == 0:
             continue
         image = heatmap[index : index + 1]
-        peaks = student_peaks(image, points.to(image.device).float())
+        points = points.to(image.device).float()
+        peaks = student_peaks(image, points)
+        if only_detected:
+            keep = detected(image, peaks)
+            points, peaks = points[keep], peaks[keep]
+            if points.numel() == 0:
+                continue
         refined = refine_keypoints(image, peaks, refinement, gradient_through_clamp=True)
-        errors.append(F.smooth_l1_loss(refined, points.to(image.device).float(), reduction="none", beta=0.5).sum(1))
+        errors.append(F.smooth_l1_loss(refined, points, reduction="none", beta=0.5).sum(1))
         windows, _ = peak_windows(image, peaks, 1)
         spreads.append(1.0 - windows[:, 4] / windows.sum(1).clamp_min(1e-6))
     if not errors:
