@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from models.deform import DeformableConv
-from models.keypoints import unit_rows
+from models.keypoints import parse_refinement, unit_rows
 
 ACTIVATIONS = ("elu", "relu")
 CELL = 8
@@ -130,8 +130,6 @@ class FeatureNetConfig:
             raise ValueError("context_blocks must be >= 0 and context_channels >= 1")
         self.context_blocks, self.context_channels = int(self.context_blocks), int(self.context_channels)
         self.pixel_head_channels = int(self.pixel_head_channels)
-        from models.keypoints import parse_refinement
-
         parse_refinement(self.refinement)  # ValueError names the bad text
         if self.deform_scale not in (2, 3):
             raise ValueError("deform_scale must be 2 (H/4) or 3 (H/8)")
