@@ -86,6 +86,7 @@ def teacher_detector(name: str, config: DetectorConfig, label: str) -> Detector:
     full-resolution descriptors read there bilinearly."""
     from models.keypoints import border_mask, max_pool_nms, refine_keypoints
     from models.teachers import TEACHER_REFINEMENT, build_teacher
+    from toolkit.training.distill_pairs import sample_map
 
     teacher = build_teacher(name)
     if not hasattr(teacher, "dense"):
@@ -102,20 +103,12 @@ def teacher_detector(name: str, config: DetectorConfig, label: str) -> Detector:
             values, indices = values[keep], indices[keep]
             peaks_xy = torch.stack([indices % width, indices // width], dim=1).float()
             keypoints = refine_keypoints(scores.float(), peaks_xy, TEACHER_REFINEMENT)
-            picked = _bilinear_rows(descriptors[0].float(), keypoints)
+            picked = sample_map(descriptors[0].float(), keypoints, stride=1)  # full resolution: bilinear
         return Detection(keypoints.numpy(), values.float().numpy(), picked.numpy())
 
     settings = {"teacher": name, "refinement": TEACHER_REFINEMENT.describe(), "max_keypoints": config.max_keypoints, "nms_radius": config.nms_radius,
                 "detection_threshold": config.detection_threshold, "border": config.border}
     return Detector(label, "teacher", detect, settings)
-
-
-def _bilinear_rows(dense: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """A full-resolution map [D, H, W] read bilinearly at pixel points [N, 2] (x, y) -> [N, D], unit L2 norm."""
-    _, height, width = dense.shape
-    grid = torch.stack([points[:, 0] * 2.0 / max(width - 1, 1) - 1.0, points[:, 1] * 2.0 / max(height - 1, 1) - 1.0], -1)
-    sampled = F.grid_sample(dense[None], grid.view(1, 1, -1, 2), mode="bilinear", align_corners=True)[0, :, 0].T
-    return F.normalize(sampled, p=2.0, dim=1)
 
 
 def xfeat_detector(config: DetectorConfig, label: str) -> Detector:

@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from models.keypoints import Refinement, heatmap_from_logits, peak_windows, refine_keypoints
+from models.keypoints import Refinement, heatmap_from_logits, max_pool_nms, peak_windows, refine_keypoints
 from toolkit.training.distill_pairs import sample_map
 from toolkit.training.homographies import points_inside, warp_points
 from toolkit.training.losses import cell_centres, detector_loss
@@ -242,10 +242,8 @@ def detected(heatmap: torch.Tensor, peaks: torch.Tensor) -> torch.Tensor:
     """[N] bool: the integer ``peaks`` [N, 2] of ``heatmap`` [1, 1, H, W] that the graph would keep (a maximum
     within the NMS radius, above the detection threshold)."""
     _, _, _, width = heatmap.shape
-    pooled = F.max_pool2d(heatmap.detach(), 2 * DETECTION_NMS_RADIUS + 1, stride=1, padding=DETECTION_NMS_RADIUS)
-    flat = (peaks[:, 1] * width + peaks[:, 0]).long()
-    values = heatmap.detach().reshape(-1)[flat]
-    return (values == pooled.reshape(-1)[flat]) & (values > DETECTION_THRESHOLD)
+    kept = max_pool_nms(heatmap.detach(), DETECTION_NMS_RADIUS).reshape(-1)  # the graph's own NMS
+    return kept[(peaks[:, 1] * width + peaks[:, 0]).long()] > DETECTION_THRESHOLD
 
 
 def position_loss(logits: torch.Tensor, targets: list[torch.Tensor], refinement: Refinement,
