@@ -86,6 +86,7 @@ class DepthwiseSeparableBlock(nn.Module):
 
 MAX_CHANNELS = 4096  # per layer: 16x the shipped model's widest; beyond it only memory runs out
 MAX_BLOCKS = 64
+MAX_PIXEL_MARGIN = 4  # half a cell: beyond it the window is mostly the neighbours' pixels
 
 
 @dataclass
@@ -103,6 +104,9 @@ class FeatureNetConfig:
     deform_depthwise: bool = False  # depthwise deformable 3x3 + pointwise 1x1 instead of a dense deformable 3x3
     deform_fraction: float = 1.0  # depthwise only: share of channels sampled at the offsets (the rest: plain 3x3)
     pixel_head_channels: int = 64  # width of the cell-pixel keypoint head; 0 = no such head
+    # Pixels the cell-pixel head sees beyond its own cell on each side: 0 = the cell's 8x8 pixels only, so a
+    # corner on a cell's border is half outside its view; 1 = a 10x10 window (`CellPixelHead`).
+    pixel_head_margin: int = 0
     context_blocks: int = 0  # inverted residual blocks at H/8, after the deformable conv, before the heads
     context_channels: int = 256  # their expanded width
     # How the heatmap is read to sub-pixel positions (`models.keypoints.parse_refinement`): the one these
@@ -130,6 +134,9 @@ class FeatureNetConfig:
             raise ValueError("context_blocks must be >= 0 and context_channels >= 1")
         self.context_blocks, self.context_channels = int(self.context_blocks), int(self.context_channels)
         self.pixel_head_channels = int(self.pixel_head_channels)
+        if not 0 <= int(self.pixel_head_margin) <= MAX_PIXEL_MARGIN:
+            raise ValueError(f"pixel_head_margin must be within [0, {MAX_PIXEL_MARGIN}]")
+        self.pixel_head_margin = int(self.pixel_head_margin)
         parse_refinement(self.refinement)  # ValueError names the bad text
         if self.deform_scale not in (2, 3):
             raise ValueError("deform_scale must be 2 (H/4) or 3 (H/8)")
@@ -227,6 +234,56 @@ class CellPixelHead(nn.Module):
         return self.layers(centred / contrast)
 
 
+class WindowPixelHead(nn.Module):
+    """`CellPixelHead` over a window that reaches ``margin`` pixels into the neighbouring cells.
+
+    image [B, 1, H, W] -> [B, 65, H/8, W/8]. The window's (8 + 2m)^2 pixels are normalised to zero mean and unit
+    contrast as in `CellPixelHead`, then mixed by the first 1x1 conv. Because the normalisation is a per-window
+    shift and scale, that conv is applied to the raw pixels instead, as one (8 + 2m)^2 stride-8 conv W, and
+    the normalisation afterwards: W(x - mean) / contrast = (W x - mean * sum(W)) / contrast, with the mean and
+    the mean square from stride-8 average pools (zero padding at the image border, as the window's). So the
+    head never gathers the window's pixels as channels: fewer MACs than the 8x8 head's gather at margin 1.
+    Starting from an 8x8 head (`widen_pixel_window`), the margin weights are zero.
+    """
+
+    def __init__(self, channels: int, activation: str, margin: int) -> None:
+        super().__init__()
+        self.margin = int(margin)
+        size = CELL + 2 * self.margin
+        self.layers = nn.Sequential(
+            nn.Conv2d(1, channels, size, stride=CELL, padding=self.margin, bias=False), nn.BatchNorm2d(channels),
+            make_activation(activation),
+            nn.Conv2d(channels, channels, 1, bias=False), nn.BatchNorm2d(channels), make_activation(activation),
+            nn.Conv2d(channels, CELL * CELL + 1, 1),
+        )
+        nn.init.zeros_(self.layers[-1].weight)
+        nn.init.zeros_(self.layers[-1].bias)
+
+    def forward(self, image: torch.Tensor, cells_by_conv: bool = False) -> torch.Tensor:
+        window = self.layers[0]
+        size = window.kernel_size[0]
+        mean = F.avg_pool2d(image, size, stride=CELL, padding=self.margin, count_include_pad=True)
+        mean_square = F.avg_pool2d(image * image, size, stride=CELL, padding=self.margin, count_include_pad=True)
+        contrast = torch.sqrt((mean_square - mean * mean).clamp_min(0.0) + 1e-4)
+        weight_sums = window.weight.sum(dim=(1, 2, 3)).reshape(1, -1, 1, 1)
+        mixed = (window(image) - mean * weight_sums) / contrast
+        return self.layers[1:](mixed)
+
+
+def widen_pixel_window(state: dict, model: nn.Module) -> dict:
+    """``state`` of an 8x8 cell-pixel head made to fit ``model``'s `WindowPixelHead`: the first 1x1 conv over
+    the cell's 64 pixel channels (order dy*8 + dx) becomes the window conv's inner 8x8 taps, the margin zero."""
+    head = getattr(model, "pixel_head", None)
+    key = "pixel_head.layers.0.weight"
+    if not isinstance(head, WindowPixelHead) or key not in state or state[key].shape[1] != CELL * CELL:
+        return state
+    old = state[key]
+    new = torch.zeros_like(head.layers[0].weight)
+    m = head.margin
+    new[:, 0, m : m + CELL, m : m + CELL] = old.reshape(old.shape[0], CELL, CELL).to(new.dtype)
+    return {**state, key: new}
+
+
 class FeatureNet(nn.Module):
     """Depthwise-separable SuperPoint-style network with one deformable conv at H/8.
 
@@ -271,7 +328,8 @@ class FeatureNet(nn.Module):
             nn.Conv2d(cfg.head_channels, cfg.descriptor_dim, 1),
         )
         if cfg.pixel_head_channels:
-            self.pixel_head = CellPixelHead(cfg.pixel_head_channels, act)
+            self.pixel_head = (CellPixelHead(cfg.pixel_head_channels, act) if not cfg.pixel_head_margin
+                               else WindowPixelHead(cfg.pixel_head_channels, act, cfg.pixel_head_margin))
 
     def backbone(self, image: torch.Tensor) -> torch.Tensor:
         """image [B, 1, H, W] -> shared features [B, C, H/8, W/8].

@@ -4,11 +4,9 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import numpy as np
 import pytest
 import torch
 
-from export.artefact import ExportOptions, export_artefact
 from models.checkpoint import load_checkpoint, save_checkpoint
 from models.featurenet import FeatureNet, FeatureNetConfig, InvertedResidualBlock
 from models.weights import shipped_checkpoint
@@ -17,7 +15,7 @@ from toolkit.compression.prune import prune_channels
 from toolkit.compression.proxy import calibrated_random_featurenet
 from toolkit.errors import ToolkitError
 from toolkit.training.trainer import initialise_from
-from vo_runtime.artefact import verify_artefact
+from roundtrip_support import assert_saves_and_exports
 
 torch.set_num_threads(1)
 SIZE = (64, 96)
@@ -74,13 +72,5 @@ def test_context_blocks_prune_save_and_export(shared_data, tmp_path):
     student = prune_channels(teacher, 0.3, SIZE)
     assert student.config.context_channels == 64 and all(b.expand.out_channels == 64 for b in student.context)
     assert all(b.project.out_channels == b.expand.in_channels == 48 for b in student.context)  # coupled to x
-    path = save_checkpoint(student, tmp_path / "pruned.safetensors")
-    loaded, info = load_checkpoint(path)
-    assert info.config["context_blocks"] == 2 and info.config["context_channels"] == 64
-    x = torch.from_numpy(np.ascontiguousarray(images[:1]))
-    with torch.no_grad():
-        assert torch.allclose(loaded.eval()(x)["logits"], student(x)["logits"], atol=1e-5)
-    for target in ("x86-cpu", "tx2"):
-        out = export_artefact(ExportOptions(target=target, output=tmp_path / target, checkpoint=path,
-                                            input_size=SIZE, precision="fp32"), log=lambda _m: None)
-        assert verify_artefact(out)["parity"]["keypoints_identical"] >= 0.99
+    config = assert_saves_and_exports(student, images, tmp_path, SIZE)
+    assert config["context_blocks"] == 2 and config["context_channels"] == 64

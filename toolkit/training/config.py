@@ -27,6 +27,9 @@ class TrainConfig:
     recipe: str = "distill"  # "distill" (teacher keypoints + descriptors) or "paper" (SuperPoint's CE + hinge)
     arch: str = "featurenet"  # or "superpoint"
     model: dict = field(default_factory=dict)  # FeatureNetConfig / SuperPointConfig fields
+    # Module names of the parts that learn (e.g. ["pixel_head", "detector"]); empty: the whole model.
+    # The rest keeps its weights and stays in eval mode (`toolkit.training.freezing`).
+    train_only: list = field(default_factory=list)
     init: str = ""  # start from these weights: a run folder (model + projection) or a .safetensors checkpoint
     steps: int = 20000
     batch: int = 8  # pairs per step and per process

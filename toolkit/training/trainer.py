@@ -27,6 +27,7 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 
 from models.checkpoint import build_model, save_checkpoint
+from models.featurenet import widen_pixel_window
 from models.deform import set_deform_strategy
 from models.keypoints import model_refinement
 from toolkit.errors import ToolkitError
@@ -35,6 +36,7 @@ from vo_runtime.machine import check_thread_count, physical_memory_bytes
 from toolkit.training.config import TrainConfig, config_from_dict, read_config_file  # noqa: F401 (re-exported)
 from toolkit.training.distill_losses import DescriptorProjection, distill_loss
 from toolkit.training.distill_pairs import DistillPairs
+from toolkit.training.freezing import freeze_outside, hold_frozen_in_eval
 from toolkit.training.label_store import LabelStore, write_atomic
 from toolkit.training.losses import superpoint_loss
 from toolkit.training.pairs import StepBatchSampler, WarpedPairs, load_labelled_images, split_train_val
@@ -135,7 +137,7 @@ def grow_context_blocks(state: dict, model: torch.nn.Module) -> dict:
 def adapt_state(state: dict, model: torch.nn.Module) -> dict:
     """A state dict from an older layout made to fit ``model``: dense deformable kernels to depthwise ones,
     missing context blocks grown as the identity."""
-    return grow_context_blocks(dense_to_depthwise_deform(state, model), model)
+    return widen_pixel_window(grow_context_blocks(dense_to_depthwise_deform(state, model), model), model)
 
 
 def initialise_from(source: str, model: torch.nn.Module, projection: torch.nn.Module | None) -> None:
@@ -268,7 +270,9 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
     if distilling:  # the teacher's width comes from its stored maps (128 for alike-n)
         teacher_dim = int(store.get_descriptors(train_images[0].sha256).shape[0])
         projection = DescriptorProjection(model.config.descriptor_dim, teacher_dim).to(device)
-    parameters = list(model.parameters()) + (list(projection.parameters()) if projection is not None else [])
+    freeze_outside(model, config.train_only)
+    parameters = [p for p in model.parameters() if p.requires_grad]
+    parameters += list(projection.parameters()) if projection is not None else []
     optimizer = torch.optim.Adam(parameters, lr=config.lr)
     use_amp = config.amp and device.type == "cuda"
     scaler = torch.amp.GradScaler("cuda") if use_amp else None
@@ -332,6 +336,7 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
     last: dict[str, float] = {}
     metrics: dict[str, float] = {}
     model.train()
+    hold_frozen_in_eval(model, config.train_only)
     tick = time.perf_counter()
     bar = progress_bar(total=config.steps, initial=step, desc="train", unit="step", enabled=rank == 0)
     for batch in loader:
@@ -376,6 +381,7 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
         if rank == 0 and (step % config.validate_every == 0 or step == config.steps):
             with autocast():
                 metrics = {"step": step, **validate(model, val_loader, device, loss_fn, config.validation)}
+            hold_frozen_in_eval(model, config.train_only)  # validate() switched the model back to training
             append_csv(run / "val.csv", VAL_FIELDS, metrics)
             plot_validation_curve(run / "val.csv", run / "val.png")
             # The best checkpoint is the one that matches best: detector and descriptor both count.
