@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import onnx
 import pytest
 import torch
 
@@ -14,6 +15,7 @@ from models.weights import shipped_checkpoint
 from toolkit.compression.images import load_images
 from toolkit.compression.prune import prune_channels
 from toolkit.compression.proxy import calibrated_random_featurenet
+from toolkit.compression.sensitivity import fixed_kernel_convs, single_channel_convs
 from toolkit.errors import ToolkitError
 from toolkit.training.freezing import freeze_outside, hold_frozen_in_eval
 from toolkit.training.trainer import initialise_from
@@ -111,6 +113,10 @@ def test_a_window_head_prunes_saves_and_exports(shared_data, tmp_path):
     student = prune_channels(teacher, 0.3, SIZE)
     assert student.config.pixel_head_margin == 1 and student.pixel_head.layers[0].kernel_size == (10, 10)
     assert assert_saves_and_exports(student, images, tmp_path, SIZE)["pixel_head_margin"] == 1
+    # What INT8 keeps in float: the box-kernel conv of the window statistics and the window conv on raw pixels
+    graph = onnx.load(str(tmp_path / "x86-cpu" / "model.onnx"))
+    assert [n for n in fixed_kernel_convs(graph)] and all("/window_statistics/" in n for n in fixed_kernel_convs(graph))
+    assert any("pixel_head/layers.0/" in n for n in single_channel_convs(graph))
 
 
 def test_only_the_named_parts_learn_and_the_rest_keeps_its_statistics():

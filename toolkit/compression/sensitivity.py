@@ -36,9 +36,10 @@ def conv_nodes(model: onnx.ModelProto) -> list[onnx.NodeProto]:
 
 
 def fixed_kernel_convs(model: onnx.ModelProto) -> list[str]:
-    """Names of the convs inside `models.featurenet.CellContrast`: fixed kernels on raw pixel differences
-    and their squares, where uint8 steps would erase a dark cell's contrast. They stay in float."""
-    return [node.name for node in model.graph.node if node.op_type == "Conv" and "/cell_contrast/" in node.name]
+    """Names of the convs inside `models.featurenet.CellContrast` and `WindowStatistics`: fixed kernels on raw
+    pixel differences and their squares, where uint8 steps would erase a dark cell's contrast. They stay in float."""
+    scopes = ("/cell_contrast/", "/window_statistics/")
+    return [node.name for node in model.graph.node if node.op_type == "Conv" and any(s in node.name for s in scopes)]
 
 
 def single_channel_convs(model: onnx.ModelProto) -> list[str]:
