@@ -105,7 +105,7 @@ class FeatureNetConfig:
     deform_fraction: float = 1.0  # depthwise only: share of channels sampled at the offsets (the rest: plain 3x3)
     pixel_head_channels: int = 64  # width of the cell-pixel keypoint head; 0 = no such head
     # Pixels the cell-pixel head sees beyond its own cell on each side: 0 = the cell's 8x8 pixels only, so a
-    # corner on a cell's border is half outside its view; 1 = a 10x10 window (`CellPixelHead`).
+    # corner on a cell's border is half outside its view; m = an (8 + 2m)^2 window (`WindowPixelHead`).
     pixel_head_margin: int = 0
     context_blocks: int = 0  # inverted residual blocks at H/8, after the deformable conv, before the heads
     context_channels: int = 256  # their expanded width
@@ -235,21 +235,21 @@ class CellPixelHead(nn.Module):
 
 
 class WindowStatistics(nn.Module):
-    """Mean and contrast of every stride-8 window of ``size`` pixels (zero padding ``margin``).
+    """Mean and contrast of every stride-8 window of ``size`` pixels, without padding.
 
-    image [B, 1, H, W] -> mean, contrast [B, 1, H/8, W/8]. One grouped conv with a box kernel over the image
+    image [B, 1, H + 2m, W + 2m] -> mean, contrast [B, 1, H/8, W/8]. One grouped conv with a box kernel over the image
     and its square, which onnxruntime runs faster than two AveragePools of this size (they took 8 % of the ReLU
     graph's time at margin 2). A fixed kernel on raw pixels: it stays float when a graph is quantised, as
     `CellContrast` does (a dark window's contrast is below one uint8 step of its mean).
     """
 
-    def __init__(self, size: int, margin: int) -> None:
+    def __init__(self, size: int) -> None:
         super().__init__()
-        self.size, self.margin = int(size), int(margin)
+        self.size = int(size)
 
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """image [B, 1, H + 2m, W + 2m], already zero-padded by the margin and shifted by a constant per image
-        (`WindowPixelHead`): the variance is E[x^2] - E[x]^2, which cancels badly in FP16 unless x is near 0."""
+        """``image`` comes zero-padded and shifted by a constant per image (`WindowPixelHead`): the variance is
+        E[x^2] - E[x]^2, which cancels badly in FP16 unless x is near 0."""
         box = torch.full((2, 1, self.size, self.size), 1.0 / (self.size * self.size), dtype=image.dtype,
                          device=image.device)
         stats = F.conv2d(torch.cat([image, image * image], dim=1), box, stride=CELL, groups=2)
@@ -282,9 +282,10 @@ class WindowPixelHead(nn.Module):
         )
         nn.init.zeros_(self.layers[-1].weight)
         nn.init.zeros_(self.layers[-1].bias)
-        self.window_statistics = WindowStatistics(size, self.margin)  # no parameters
+        self.window_statistics = WindowStatistics(size)  # no parameters: the checkpoint format is unchanged
 
     def forward(self, image: torch.Tensor, cells_by_conv: bool = False) -> torch.Tensor:
+        """``cells_by_conv`` is `CellPixelHead`'s: this head has one path, every graph runs it."""
         window = self.layers[0]
         # Zero padding first, then a shift by the image's mean: the normalised response is the same in exact
         # arithmetic (mean and W x move together), but both subtractions below then cancel numbers near zero,

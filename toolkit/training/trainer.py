@@ -136,7 +136,7 @@ def grow_context_blocks(state: dict, model: torch.nn.Module) -> dict:
 
 def adapt_state(state: dict, model: torch.nn.Module) -> dict:
     """A state dict from an older layout made to fit ``model``: dense deformable kernels to depthwise ones,
-    missing context blocks grown as the identity."""
+    missing context blocks grown as the identity, an 8x8 cell-pixel head widened to a window."""
     return widen_pixel_window(grow_context_blocks(dense_to_depthwise_deform(state, model), model), model)
 
 
