@@ -237,10 +237,12 @@ class CellPixelHead(nn.Module):
 class WindowStatistics(nn.Module):
     """Mean and contrast of every stride-8 window of ``size`` pixels, without padding.
 
-    image [B, 1, H + 2m, W + 2m] -> mean, contrast [B, 1, H/8, W/8]. One grouped conv with a box kernel over the image
-    and its square, which onnxruntime runs faster than two AveragePools of this size (they took 8 % of the ReLU
-    graph's time at margin 2). A fixed kernel on raw pixels: it stays float when a graph is quantised, as
-    `CellContrast` does (a dark window's contrast is below one uint8 step of its mean).
+    image [B, 1, H + 2m, W + 2m] -> mean, contrast [B, 1, H/8, W/8]. Two single-channel convs with a box kernel, over
+    the image and over its square: onnxruntime runs them 3x faster than one grouped conv over the two stacked
+    (0.25 against 0.72 ms at 240x320 on one thread: the grouped conv has no blocked kernel and needs a Concat), and
+    faster than two AveragePools of this size (8 % of the ReLU graph's time at margin 2). Fixed kernels on raw
+    pixels: they stay float when a graph is quantised, as `CellContrast` does (a dark window's contrast is below
+    one uint8 step of its mean).
     """
 
     def __init__(self, size: int) -> None:
@@ -250,10 +252,10 @@ class WindowStatistics(nn.Module):
     def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``image`` comes zero-padded and shifted by a constant per image (`WindowPixelHead`): the variance is
         E[x^2] - E[x]^2, which cancels badly in FP16 unless x is near 0."""
-        box = torch.full((2, 1, self.size, self.size), 1.0 / (self.size * self.size), dtype=image.dtype,
+        box = torch.full((1, 1, self.size, self.size), 1.0 / (self.size * self.size), dtype=image.dtype,
                          device=image.device)
-        stats = F.conv2d(torch.cat([image, image * image], dim=1), box, stride=CELL, groups=2)
-        mean, mean_square = stats[:, :1], stats[:, 1:]
+        mean = F.conv2d(image, box, stride=CELL)
+        mean_square = F.conv2d(image * image, box, stride=CELL)
         return mean, torch.sqrt((mean_square - mean * mean).clamp_min(0.0) + 1e-4)
 
 
