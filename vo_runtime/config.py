@@ -32,6 +32,14 @@ class VOConfig:
     # onset with a few mm of baseline, EuRoC MH_05) fitted 24-45 %: a model fitted to noise, whose map then
     # "tracked" with metres of error. 0 turns the check off.
     init_min_inlier_share: float = 0.0
+    # The first map's probation (`probation.py`): over its first this many tracked frames, the median angle
+    # between the rotation it tracked from frame to frame and the rotation fitted to the two frames' matches
+    # alone must stay below probation_max_deg, or the map is discarded and the VO initialises again (at most
+    # probation_max_discards times a run). 0 frames: off. Dev data: broken take-off 1.42 deg, healthy first
+    # maps 0.12-0.72 (docs/vo_euroc.md).
+    probation_frames: int = 15
+    probation_max_deg: float = 1.0
+    probation_max_discards: int = 2
     min_triangulation_deg: float = 1.0   # rays closer than this give no landmark
     search_radius_px: float = 15.0       # guided matching around a landmark's predicted position
     wide_search_radius_px: float = 45.0  # ... when the first search explains too little
@@ -73,6 +81,8 @@ class VOConfig:
             raise VORuntimeError("initial_baseline must be positive")
         if self.align_window_px < 0 or self.align_max_shift <= 0 or self.align_gain < 1:
             raise VORuntimeError("align_window_px must be >= 0, align_max_shift > 0 and align_gain >= 1")
+        if self.probation_frames < 0 or self.probation_max_deg <= 0 or self.probation_max_discards < 0:
+            raise VORuntimeError("probation_frames and probation_max_discards must be >= 0, probation_max_deg > 0")
         if not 0 < self.search_radius_px <= self.wide_search_radius_px:
             raise VORuntimeError("search radii must be positive, the wide one no smaller")
 
@@ -92,7 +102,7 @@ class VOResult:
     extract_ms: float
     track_ms: float
     keyframe: bool = False  # became a keyframe (adds landmarks, runs the local bundle adjustment)
-    problem: str | None = None  # why a skipped frame could not be used
+    problem: str | None = None  # why a skipped frame could not be used, or why a map was discarded here
     tracked_by: str | None = None  # local map | wide search | previous frame | relocalisation | two-view
     mapping_ms: float = 0.0  # keyframe work (triangulation, bundle adjustment, culling): part of track_ms,
     #                          or on the worker thread with VOConfig.mapping_thread

@@ -7,6 +7,9 @@ States of a frame (``VOResult.status``), and what moves between them:
   scores better, `twoview.py`) gives the relative pose, and the triangulated points become the first
   landmarks, observed by two keyframes, once their rays are far enough apart (median
   ``VOConfig.init_min_median_deg``). The first baseline sets the unit (``VOConfig.initial_baseline``).
+  The first map is on probation for ``VOConfig.probation_frames`` tracked frames (`probation.py`): when the
+  rotations it tracks disagree with the rotations the frames' own matches give, it is discarded, its frames
+  go back to ``initialising`` (``problem`` says why on the frame that discarded it), and a new map is built.
 - ``tracking``: the pose predicted by a constant-velocity model projects the local map (landmarks of the
   reference keyframe and its covisible keyframes) into the frame; guided matching and a robust refinement
   give the pose, with a wider search and then the previous frame as fallbacks (`tracking.py`;
@@ -46,6 +49,7 @@ from vo_runtime.geometry import camera_centre, invert_pose, per_frame_motion
 from vo_runtime.initialiser import Initialiser
 from vo_runtime.localmap import Keyframe, LocalMap
 from vo_runtime.mapping import cull_landmarks, local_bundle_adjustment, refresh_landmarks, triangulate_new_landmarks
+from vo_runtime.probation import MapProbation
 from vo_runtime.refine import PatchAligner, align_rows, align_to_map
 from vo_runtime.relocalise import relocalise
 from vo_runtime.single_caller import SingleCaller, single_caller
@@ -101,6 +105,10 @@ class MonoVO:
         self._lost_tries = 0
         self._focal = self.camera.focal              # pixels per normalised unit, in the detector's pixels
         self._initialiser = Initialiser(self.config, self._focal)
+        cfg = self.config
+        self._probation = MapProbation(cfg.probation_frames, cfg.probation_max_deg, cfg.probation_max_discards,
+                                       cfg.match_max_distance, cfg.match_ratio)
+        self._map_reference = -1                     # first frame of the current map (its reference keyframe)
         self._frame_size: tuple[int, int] | None = None  # (height, width) of the frames, fixed by the first one
         self._aligner: PatchAligner | None = None    # patch alignment, set up on the first frame
         self._detection_scale = 1.0                  # threshold pixels per raw detection's pixel (alignment)
@@ -253,6 +261,8 @@ class MonoVO:
         frame = FrameData.build(self.camera.normalise(pixels), pixels, features.descriptors)
         if self._aligner is not None:
             frame.gray = to_gray_u8(image)
+        if self._probation.active or self.map is None:  # the map-free rotation: on detections, not aligned points
+            frame.detected = frame.points.copy()
         lost = self._lost_since >= 0
         if mapped and self._last_tracked >= 0 and (not lost or index - self._last_tracked <= cfg.lost_predict_frames):
             settings = self._settings(frame)
@@ -318,6 +328,15 @@ class MonoVO:
                                                       self.camera.normalise):
             refit_pose(self.map, frame, outcome, self._settings(frame))
         pose = outcome.pose_cw
+        previous = self._previous[0] if self._previous is not None else None
+        if (self._probation.active and status == TRACKING and self._last_tracked == index - 1
+                and previous.detected is not None):
+            value = self._probation.disagreement(previous.detected, previous.descriptors, frame.detected,
+                                                 frame.descriptors, pose[:3, :3] @ self._poses_cw[index - 1][:3, :3].T,
+                                                 self._focal)
+            if self._probation.judge(value):
+                self._discard_map(index, frame, result)
+                return
         if self._last_tracked >= 0 and (self._lost_since < 0 or status == TRACKING):
             gap = index - self._last_tracked
             step = pose @ invert_pose(self._poses_cw[self._last_tracked])
@@ -339,6 +358,24 @@ class MonoVO:
         else:
             keyframe = self.map.keyframes[self._reference_kf]
             self._anchors[self._reference_kf].append((index, pose @ invert_pose(keyframe.pose_cw)))
+
+    def _discard_map(self, index: int, frame: FrameData, result: VOResult) -> None:
+        """The first map failed its probation: forget it as if it had never been built. Its frames go back to
+        ``initialising`` with the reference frame's pose, and the next initialisation measures from this frame."""
+        held = self._poses_cw[self._map_reference].copy()
+        for number in range(self._map_reference + 1, index + 1):
+            self._poses_cw[number] = held.copy()
+            if number < len(self.results):
+                earlier = self.results[number]
+                earlier.pose, earlier.status, earlier.tracked_by, earlier.keyframe = invert_pose(held), INITIALISING, None, False
+        median = float(np.median(self._probation.values))
+        self.map, self._anchors, self._previous, self._speed = None, {}, None, None
+        self._reference_kf, self._local_ids, self._last_tracked, self._lost_since = -1, np.zeros(0, np.int64), -1, -1
+        self._velocity = np.eye(4)
+        self._initialiser.restart(index, frame)
+        result.status, result.tracked_by = INITIALISING, None
+        result.problem = (f"map discarded: its frame-to-frame rotations disagreed with the frames' own by {median:.2f} "
+                          f"deg (median of {len(self._probation.values)} frames)")
 
     def _needs_keyframe(self, index: int, tracked: int) -> bool:
         """ORB-SLAM's two reasons, simplified: the view has moved on, or too long since the last keyframe."""
@@ -417,6 +454,11 @@ class MonoVO:
         self._velocity = per_frame_motion(self._poses_cw[index] @ invert_pose(self._poses_cw[outcome.reference_index]),
                                           index - outcome.reference_index)
         self._speed = outcome.speed
+        self._map_reference = outcome.reference_index
+        if reinitialised:
+            self._probation.end()
+        else:
+            self._probation.begin()
         result.status = REINITIALISED if reinitialised else TRACKING
         result.tracked_by = "two-view"
         result.keyframe = True

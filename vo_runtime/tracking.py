@@ -34,6 +34,7 @@ class FrameData:
     descriptors: np.ndarray  # [N, D]
     tree: cKDTree            # over ``points``
     gray: np.ndarray | None = None  # the frame, uint8, for patch alignment (`refine.py`)
+    detected: np.ndarray | None = None  # ``points`` as detected, before alignment moves some (`probation.py`)
 
     @classmethod
     def build(cls, points: np.ndarray, pixels: np.ndarray, descriptors: np.ndarray) -> "FrameData":

@@ -1,0 +1,61 @@
+"""The rotation that explains two views' tracks when the camera only turned, and what it leaves unexplained.
+
+A camera that turns without moving (a hovering drone, the first second of a take-off) moves every track, yet
+gives no depth: its tracks obey ``x_b ~ R x_a`` for one rotation R, whatever the scene. `fit_rotation_ransac`
+finds that R (RANSAC over two-track samples, then a least-squares refit on the inliers) and each track's
+residual, the translational parallax in normalised units. Where the residual is below the tracks' noise, R is
+the camera's rotation measured without any map: `MonoVO` compares it with the rotation its map tracked.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+RANSAC_SAMPLES = 64
+
+
+def bearings(points: np.ndarray) -> np.ndarray:
+    """Normalised image points [N, 2] -> unit rays [N, 3]."""
+    rays = np.concatenate([np.asarray(points, np.float64), np.ones((len(points), 1))], axis=1)
+    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+
+def fit_rotation(rays_a: np.ndarray, rays_b: np.ndarray) -> np.ndarray:
+    """Least-squares rotation R with ``rays_b ~ R rays_a`` (orthogonal Procrustes; rays [N, 3], N >= 2)."""
+    u, _, vt = np.linalg.svd(rays_b.T @ rays_a)
+    fix = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    return u @ fix @ vt
+
+
+def rotation_residuals(rotation: np.ndarray, rays_a: np.ndarray, rays_b: np.ndarray) -> np.ndarray:
+    """Angle (radians) between each rotated ray of view a and its ray in view b, [N]."""
+    cosine = np.clip(np.sum((rays_a @ rotation.T) * rays_b, axis=1), -1.0, 1.0)
+    return np.arccos(cosine)
+
+
+def fit_rotation_ransac(pts_a: np.ndarray, pts_b: np.ndarray, threshold: float,
+                        seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation most tracks agree with, and every track's residual after it.
+
+    Args:
+        pts_a, pts_b: [N, 2] undistorted normalised points of the same tracks in two views (N >= 2).
+        threshold: inlier gate in normalised units (pixels / focal).
+        seed: the sampling is seeded: one input, one answer.
+    Returns:
+        rotation [3, 3] (view a to view b) and residuals [N] in radians (~ normalised units).
+    """
+    rays_a, rays_b = bearings(pts_a), bearings(pts_b)
+    count = len(rays_a)
+    if count < 2:
+        raise ValueError("a rotation needs at least two tracks")
+    rng = np.random.default_rng(seed)
+    best, best_inliers = np.eye(3), -1
+    for _ in range(RANSAC_SAMPLES):
+        pair = rng.choice(count, 2, replace=False)
+        rotation = fit_rotation(rays_a[pair], rays_b[pair])
+        inliers = int(np.count_nonzero(rotation_residuals(rotation, rays_a, rays_b) < threshold))
+        if inliers > best_inliers:
+            best, best_inliers = rotation, inliers
+    inliers = rotation_residuals(best, rays_a, rays_b) < threshold
+    if np.count_nonzero(inliers) >= 2:
+        best = fit_rotation(rays_a[inliers], rays_b[inliers])
+    return best, rotation_residuals(best, rays_a, rays_b)
