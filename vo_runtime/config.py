@@ -35,8 +35,8 @@ class VOConfig:
     # The first map's probation (`probation.py`): over its first this many tracked frames, the median angle
     # between the rotation it tracked from frame to frame and the rotation fitted to the two frames' matches
     # alone must stay below probation_max_deg, or the map is discarded and the VO initialises again (at most
-    # probation_max_discards times a run). 0 frames: off. Dev data: broken take-off 1.42 deg, healthy first
-    # maps 0.12-0.72 (docs/vo_euroc.md).
+    # probation_max_discards times a run). 0 frames: off. Dev data: broken first maps 1.42-2.54 deg, healthy
+    # maps 0.11-0.72 (docs/vo_euroc.md).
     probation_frames: int = 15
     probation_max_deg: float = 1.0
     probation_max_discards: int = 2

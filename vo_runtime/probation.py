@@ -4,9 +4,9 @@ A two-view initialisation on tracks with less parallax than noise (the drone's b
 MH_05, 2-5 mm of baseline at 3-8 m) builds a wrong map that then "tracks" every frame: on the onboard-light
 take-off, 1.76 m of ATE with every frame reported as tracking. Its poses give it away in a quantity that needs
 no scale: from one frame to the next, the rotation the map tracked disagreed with the rotation fitted to the two
-frames' own detections (`rotation_fit.py`) by a median of 1.42 deg over its first 15 tracked frames, against
-0.22-0.72 deg for the healthy first maps of the dev sequences that were checked (EuRoC from frame 0 in every
-light, TUM in every light; 0.12-0.47 deg over ten frames on KITTI 06 and 07 and later EuRoC starts). So a
+frames' own detections (`rotation_fit.py`) by a median of 1.42 deg over its first 15 tracked frames (ORB's broken first maps on KITTI: 1.97 and 2.54),
+against 0.11-0.72 deg for the healthy first maps of the dev sequences that were checked (EuRoC, TUM and KITTI
+in every light; docs/vo_euroc.md). So a
 young map whose median disagreement over ``VOConfig.probation_frames`` tracked frames exceeds
 ``probation_max_deg`` is discarded, and `MonoVO` initialises again from the current frame (as ORB-SLAM resets a
 map lost within its first keyframes). Only the first map is on probation: a re-initialised one carries a scale
