@@ -92,6 +92,21 @@ class MonoVO(KeyframeUpkeep):
         self._mapping_job: Callable[[], None] | None = None  # a keyframe's mapping, for the worker thread
         self.results: list[VOResult] = []
         self._poses_cw: list[np.ndarray] = []        # world-to-camera, one per processed frame
+        self._forget_map()
+        self._lost_tries = 0
+        self._focal = self.camera.focal              # pixels per normalised unit, in the detector's pixels
+        self._initialiser = Initialiser(self.config, self._focal)
+        cfg = self.config
+        self._probation = MapProbation(cfg.probation_frames, cfg.probation_max_deg, cfg.probation_max_discards,
+                                       cfg.match_max_distance, cfg.match_ratio)
+        self._frame_size: tuple[int, int] | None = None  # (height, width) of the frames, fixed by the first one
+        self._aligner: PatchAligner | None = None    # patch alignment, set up on the first frame
+        self._detection_scale = 1.0                  # threshold pixels per raw detection's pixel (alignment)
+        self.last_observations: tuple[np.ndarray, np.ndarray | None] | None = None  # see `observations`
+
+    def _forget_map(self) -> None:
+        """No map, no motion: the state before the first initialisation (`reset`, and a map that failed its
+        probation)."""
         self._anchors: dict[int, list[tuple[int, np.ndarray]]] = {}  # keyframe -> (frame, frame-from-keyframe)
         self.map: LocalMap | None = None
         self._reference_kf = -1                      # keyframe the current frames are tracked from
@@ -101,17 +116,6 @@ class MonoVO(KeyframeUpkeep):
         self._lost_since = -1                        # first frame of the current loss (-1: not lost)
         self._velocity = np.eye(4)                   # last inter-frame motion (world-to-camera increment)
         self._speed: float | None = None             # world units per frame, for re-initialisation
-        self._lost_tries = 0
-        self._focal = self.camera.focal              # pixels per normalised unit, in the detector's pixels
-        self._initialiser = Initialiser(self.config, self._focal)
-        cfg = self.config
-        self._probation = MapProbation(cfg.probation_frames, cfg.probation_max_deg, cfg.probation_max_discards,
-                                       cfg.match_max_distance, cfg.match_ratio)
-        self._map_reference = -1                     # first frame of the current map (its reference keyframe)
-        self._frame_size: tuple[int, int] | None = None  # (height, width) of the frames, fixed by the first one
-        self._aligner: PatchAligner | None = None    # patch alignment, set up on the first frame
-        self._detection_scale = 1.0                  # threshold pixels per raw detection's pixel (alignment)
-        self.last_observations: tuple[np.ndarray, np.ndarray | None] | None = None  # see `observations`
 
     @property
     def observations(self) -> tuple[np.ndarray, np.ndarray | None] | None:
@@ -327,9 +331,9 @@ class MonoVO(KeyframeUpkeep):
                                                       self.camera.normalise):
             refit_pose(self.map, frame, outcome, self._settings(frame))
         pose = outcome.pose_cw
-        previous = self._previous[0] if self._previous is not None else None
-        if (self._probation.active and status == TRACKING and self._last_tracked == index - 1
-                and previous.detected is not None):
+        previous = self._previous[0]
+        if self._probation.active and status == TRACKING and self._last_tracked == index - 1 \
+                and previous.detected is not None:
             value = self._probation.disagreement(previous.detected, previous.descriptors, frame.detected,
                                                  frame.descriptors, pose[:3, :3] @ self._poses_cw[index - 1][:3, :3].T,
                                                  self._focal)
@@ -361,16 +365,15 @@ class MonoVO(KeyframeUpkeep):
     def _discard_map(self, index: int, frame: FrameData, result: VOResult) -> None:
         """The first map failed its probation: forget it as if it had never been built. Its frames go back to
         ``initialising`` with the reference frame's pose, and the next initialisation measures from this frame."""
-        held = self._poses_cw[self._map_reference].copy()
-        for number in range(self._map_reference + 1, index + 1):
+        first = self.map.keyframes[0].frame  # the map's reference frame
+        held = self._poses_cw[first].copy()
+        for number in range(first + 1, index + 1):
             self._poses_cw[number] = held.copy()
             if number < len(self.results):
                 earlier = self.results[number]
                 earlier.pose, earlier.status, earlier.tracked_by, earlier.keyframe = invert_pose(held), INITIALISING, None, False
         median = float(np.median(self._probation.values))
-        self.map, self._anchors, self._previous, self._speed = None, {}, None, None
-        self._reference_kf, self._local_ids, self._last_tracked, self._lost_since = -1, np.zeros(0, np.int64), -1, -1
-        self._velocity = np.eye(4)
+        self._forget_map()
         self._initialiser.restart(index, frame)
         result.status, result.tracked_by = INITIALISING, None
         result.problem = (f"map discarded: its frame-to-frame rotations disagreed with the frames' own by {median:.2f} "
@@ -395,7 +398,6 @@ class MonoVO(KeyframeUpkeep):
         self._velocity = per_frame_motion(self._poses_cw[index] @ invert_pose(self._poses_cw[outcome.reference_index]),
                                           index - outcome.reference_index)
         self._speed = outcome.speed
-        self._map_reference = outcome.reference_index
         if reinitialised:
             self._probation.end()
         else:
