@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from vo_runtime.refine import PatchAligner
+from vo_runtime.refine import PatchAligner, contrast_normalise
 
 SHIFT = np.array([2.3, -1.7])  # the target image is the source moved by this many pixels (x, y)
 
@@ -96,10 +96,46 @@ def test_alignment_makes_the_shipped_artefacts_observations_agree_with_ground_tr
     frames = list(read_frames(sequence.frames[:25]))
     extractor = FeatureExtractor(default_artefact())
     medians = {}
-    for window in (0, 15):
-        vo = MonoVO(extractor, sequence.camera, VOConfig(align_window_px=window))
+    for window, normalise in ((0, False), (15, False), (15, True)):
+        vo = MonoVO(extractor, sequence.camera, VOConfig(align_window_px=window, align_normalise=normalise))
         for image, stamp in zip(frames, sequence.timestamps):
             vo.process(image, stamp)
         assert vo.results[-1].status == "tracking" and sum(r.keyframe for r in vo.results) >= 4
-        medians[window] = float(np.median(keyframe_epipolar_errors(vo, groundtruth, sequence.camera)))
-    assert medians[15] < 0.7 * medians[0], medians
+        medians[window, normalise] = float(np.median(keyframe_epipolar_errors(vo, groundtruth, sequence.camera)))
+    assert medians[15, False] < 0.7 * medians[0, False], medians
+    assert medians[15, True] < 0.7 * medians[0, False], medians  # contrast-normalised frames align as well
+
+
+def lit_by_a_moving_light(image: np.ndarray) -> np.ndarray:
+    """``image`` under a light that dims across it (gain 1.0 at the left edge to 0.25 at the right, a spot
+    seen off-centre) plus a dark offset, as a point crossing the frame of a camera carrying its own light."""
+    gain = np.linspace(1.0, 0.25, image.shape[1], dtype=np.float32)[None, :]
+    return np.clip(image.astype(np.float32) * gain + 12.0, 0, 255).astype(np.uint8)
+
+
+def test_contrast_normalisation_removes_gain_and_offset():
+    source, _ = textured_pair()
+    window = 15
+    plain = contrast_normalise(source, window).astype(np.float32)
+    dimmed = contrast_normalise(np.clip(0.4 * source.astype(np.float32) + 30, 0, 255).astype(np.uint8), window)
+    inner = (slice(window, -window), slice(window, -window))
+    difference = np.abs(plain[inner] - dimmed.astype(np.float32)[inner])
+    assert np.median(difference) <= 2 and np.percentile(difference, 99) <= 12  # 8-bit rounding of the dimmed one
+    assert plain[inner].std() > 25  # the structure is kept: not a flat image
+
+
+def test_normalised_frames_align_under_a_light_that_moves_with_the_camera():
+    source, target = textured_pair()
+    target = lit_by_a_moving_light(target)
+    points = grid_points()
+    truth = points + SHIFT
+    detected = truth + np.random.default_rng(1).uniform(-1.5, 1.5, truth.shape)
+    aligner = PatchAligner(window_px=15, max_shift_px=3.0)
+
+    def median_error(source_image: np.ndarray, target_image: np.ndarray) -> float:
+        positions, aligned = aligner.align(source_image, target_image, points, detected)
+        return float(np.median(np.linalg.norm(np.where(aligned[:, None], positions, detected) - truth, axis=1)))
+
+    raw = median_error(source, target)
+    normalised = median_error(contrast_normalise(source, 15), contrast_normalise(target, 15))
+    assert normalised < 0.1 and raw > 2 * normalised

@@ -69,6 +69,13 @@ class VOConfig:
     # against KITTI 07's ground truth 1.28 -> 0.64 px), so pixel thresholds are in detector pixels / gain.
     # 3 rather than the measured 2: tighter gates were more accurate over 22 normal-light runs (docs/vo.md).
     align_gain: float = 3.0
+    # Align on frames with each pixel's mean and contrast over the alignment window normalised away
+    # (`refine.contrast_normalise`): a light carried by the camera or vignetting changes a point's brightness
+    # as it crosses the frame, and raw intensities pull the patch off its structure. More precise against
+    # KITTI's ground-truth epipolar geometry in every light (3 frames apart: 0.71 -> 0.62 px normal, 1.09 ->
+    # 0.86 onboard), but the ATE gained on KITTI 06 in the dark and onboard and lost on KITTI 07 in every light
+    # (docs/vo_euroc.md), so it is off until a whole table says otherwise.
+    align_normalise: bool = False
     # A keyframe's mapping on a second thread, overlapping the next frame's extraction (`background.py`):
     # the same results, sooner; a keyframe's own pose is refined after `process` returns (call `finish`).
     mapping_thread: bool = False

@@ -50,7 +50,7 @@ from vo_runtime.initialiser import Initialiser
 from vo_runtime.keyframing import KeyframeUpkeep
 from vo_runtime.localmap import Keyframe, LocalMap
 from vo_runtime.probation import MapProbation
-from vo_runtime.refine import PatchAligner, align_to_map
+from vo_runtime.refine import PatchAligner, align_to_map, contrast_normalise
 from vo_runtime.relocalise import relocalise
 from vo_runtime.single_caller import SingleCaller, single_caller
 from vo_runtime.timestamps import checked_timestamp
@@ -264,6 +264,8 @@ class MonoVO(KeyframeUpkeep):
         frame = FrameData.build(self.camera.normalise(pixels), pixels, features.descriptors)
         if self._aligner is not None:
             frame.gray = to_gray_u8(image)
+            if cfg.align_normalise:
+                frame.gray = contrast_normalise(frame.gray, self._aligner.window_px)
         if self._probation.active or self.map is None:  # the map-free rotation: on detections, not aligned points
             frame.detected = frame.points.copy()
         lost = self._lost_since >= 0

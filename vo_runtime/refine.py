@@ -22,6 +22,21 @@ PYRAMID_LEVELS = 1  # one coarser level lets the alignment start a few detector 
 _CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01)
 
 
+def contrast_normalise(gray: np.ndarray, window_px: int) -> np.ndarray:
+    """HxW uint8 -> HxW uint8 with each pixel's local mean removed and its local contrast scaled to one
+    (box windows of ``window_px``), so brightness that changes slowly across the image (a light carried by the
+    camera, vignetting) does not pull a patch off its structure while it moves through the frame."""
+    size = (window_px, window_px)
+    mean = cv2.boxFilter(gray, cv2.CV_32F, size)
+    variance = cv2.sqrBoxFilter(gray, cv2.CV_32F, size) - mean * mean
+    spread = cv2.sqrt(np.maximum(variance, 0.0)) + 1.0  # float rounding can dip below 0; +1: flat stays flat
+    contrast = cv2.divide(cv2.subtract(gray, mean, dtype=cv2.CV_32F), spread)
+    return cv2.addWeighted(contrast, _CONTRAST_SCALE, contrast, 0.0, 128.0, dtype=cv2.CV_8U)  # saturating
+
+
+_CONTRAST_SCALE = 40.0  # grey levels per local standard deviation: +-3 sigma fit in 8 bits
+
+
 @dataclass
 class PatchAligner:
     """Aligns points of one frame into another by their surrounding patches.
