@@ -206,11 +206,13 @@ def main() -> int:
         count, _, grid = args.budget.partition(",")
         budget = (int(count), tuple(int(v) for v in grid.lower().split("x")) if grid else None)
     size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
-    if args.output is not None:
-        args.output.mkdir(parents=True, exist_ok=True)
     jobs = []
     for name in args.sequences.split(","):
-        sequence = open_sequence(args.data / name)
+        try:
+            sequence = open_sequence(args.data / name)
+        except VORuntimeError as error:  # an unknown or malformed sequence: say so before any run starts
+            print(f"error: {error}", file=sys.stderr)
+            return 2
         height, width = frame_size(sequence.camera, sequence.frames)
         artefact = args.artefact or default_artefact(*(size or (width, height)))
         for features in args.features.split(","):
@@ -220,6 +222,8 @@ def main() -> int:
                 for keypoints in [int(k) for k in args.keypoints.split(",")]:
                     jobs += [(args.data / name, features, light, keypoints, overrides, artefact, args.output, size, first,
                               budget) for first in starts]
+    if args.output is not None:
+        args.output.mkdir(parents=True, exist_ok=True)
     if args.workers > 1:
         with ProcessPoolExecutor(args.workers) as pool:
             rows = list(pool.map(_run_job, jobs))
