@@ -139,3 +139,33 @@ def test_normalised_frames_align_under_a_light_that_moves_with_the_camera():
     raw = median_error(source, target)
     normalised = median_error(contrast_normalise(source, 15), contrast_normalise(target, 15))
     assert normalised < 0.1 and raw > 2 * normalised
+
+
+def test_with_alignment_new_landmarks_pass_the_aligned_parallax_gate(shared_data):
+    # The shipped 240x320 artefact on KITTI aligns its keypoints, so mapping gates new landmarks by
+    # aligned_min_parallax_px; without alignment the same run gates by min_parallax_px.
+    from vo_runtime import MonoVO, VOConfig
+    from vo_runtime.artefact import default_artefact
+    from vo_runtime.datasets import open_sequence
+    from vo_runtime.features import FeatureExtractor
+    from vo_runtime.mapping import MappingConfig
+    from vo_runtime.sequence import read_frames
+
+    sequence = open_sequence(shared_data / "kitti_odom06_f000000-000050")
+    frames = list(read_frames(sequence.frames[:16]))
+    extractor = FeatureExtractor(default_artefact())
+
+    def landmarks_after_initialisation(window: int, mapping: MappingConfig) -> int:
+        vo = MonoVO(extractor, sequence.camera, VOConfig(align_window_px=window, mapping=mapping))
+        counts = []
+        for image, stamp in zip(frames, sequence.timestamps):
+            vo.process(image, stamp)
+            counts.append(vo.map.size if vo.map is not None else 0)
+        first = next(c for c in counts if c > 0)
+        assert sum(r.keyframe for r in vo.results) >= 3
+        return max(counts) - first  # culling only shrinks the map: growth is new landmarks
+
+    closed = MappingConfig(aligned_min_parallax_px=1e9)  # no ray pair is that far apart
+    assert landmarks_after_initialisation(15, closed) == 0
+    assert landmarks_after_initialisation(15, MappingConfig()) > 100
+    assert landmarks_after_initialisation(0, closed) > 100  # not aligned: the other gate

@@ -7,6 +7,7 @@ odometry.py to keep the frame-by-frame states readable there.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -53,8 +54,10 @@ class KeyframeUpkeep:
         """New landmarks, local bundle adjustment and culling for keyframe ``number``."""
         cfg, focal = self.config, self._focal
         start = time.perf_counter()
-        refresh_landmarks(self.map, number, cfg.mapping, focal)
-        triangulate_new_landmarks(self.map, number, cfg.mapping, focal, cfg.match_max_distance, cfg.match_ratio,
+        gates = cfg.mapping if self._aligner is None else \
+            replace(cfg.mapping, min_parallax_px=cfg.mapping.aligned_min_parallax_px)
+        refresh_landmarks(self.map, number, gates, focal)
+        triangulate_new_landmarks(self.map, number, gates, focal, cfg.match_max_distance, cfg.match_ratio,
                                   self._align if self._aligner is not None else None, self._detection_scale)
         for moved in local_bundle_adjustment(self.map, number, cfg.mapping, focal):
             self._follow_keyframe(moved)
