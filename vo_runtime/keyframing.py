@@ -7,7 +7,6 @@ odometry.py to keep the frame-by-frame states readable there.
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 
 import numpy as np
 
@@ -52,16 +51,14 @@ class KeyframeUpkeep:
 
     def _map_keyframe(self, number: int, frame: FrameData, keyframe: Keyframe, result: VOResult) -> None:
         """New landmarks, local bundle adjustment and culling for keyframe ``number``."""
-        cfg, focal = self.config, self._focal
+        cfg, mapping, focal = self.config, self._mapping_config, self._focal
         start = time.perf_counter()
-        gates = cfg.mapping if self._aligner is None else \
-            replace(cfg.mapping, min_parallax_px=cfg.mapping.aligned_min_parallax_px)
-        refresh_landmarks(self.map, number, gates, focal)
-        triangulate_new_landmarks(self.map, number, gates, focal, cfg.match_max_distance, cfg.match_ratio,
+        refresh_landmarks(self.map, number, mapping, focal)
+        triangulate_new_landmarks(self.map, number, mapping, focal, cfg.match_max_distance, cfg.match_ratio,
                                   self._align if self._aligner is not None else None, self._detection_scale)
-        for moved in local_bundle_adjustment(self.map, number, cfg.mapping, focal):
+        for moved in local_bundle_adjustment(self.map, number, mapping, focal):
             self._follow_keyframe(moved)
-        cull_landmarks(self.map, number, cfg.mapping)
+        cull_landmarks(self.map, number, mapping)
         self._previous = (frame, keyframe.landmark)  # the adjustment may have dropped observations
         self._set_reference(number)
         result.mapping_ms = 1e3 * (time.perf_counter() - start)

@@ -35,6 +35,7 @@ relative to its reference keyframe, so frames reported earlier follow when bundl
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
@@ -102,6 +103,7 @@ class MonoVO(KeyframeUpkeep):
         self._frame_size: tuple[int, int] | None = None  # (height, width) of the frames, fixed by the first one
         self._aligner: PatchAligner | None = None    # patch alignment, set up on the first frame
         self._detection_scale = 1.0                  # threshold pixels per raw detection's pixel (alignment)
+        self._mapping_config = cfg.mapping           # the mapping's gates; aligned runs swap the parallax gate
         self.last_observations: tuple[np.ndarray, np.ndarray | None] | None = None  # see `observations`
 
     def _forget_map(self) -> None:
@@ -240,6 +242,7 @@ class MonoVO(KeyframeUpkeep):
             self._initialiser.align = self._align
             aligned = max(1.0, pixel / cfg.align_gain)
             self._detection_scale, pixel = pixel / aligned, aligned
+            self._mapping_config = replace(cfg.mapping, min_parallax_px=cfg.mapping.aligned_min_parallax_px)
         self._focal = self.camera.focal / pixel
         self._initialiser.focal = self._focal
 

@@ -20,6 +20,7 @@ import numpy as np
 
 PYRAMID_LEVELS = 1  # one coarser level lets the alignment start a few detector pixels off
 _CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01)
+_CONTRAST_SCALE = 40.0  # grey levels per local standard deviation (`contrast_normalise`): +-3 sigma fit in 8 bits
 
 
 def contrast_normalise(gray: np.ndarray, window_px: int) -> np.ndarray:
@@ -32,9 +33,6 @@ def contrast_normalise(gray: np.ndarray, window_px: int) -> np.ndarray:
     spread = cv2.sqrt(np.maximum(variance, 0.0)) + 1.0  # float rounding can dip below 0; +1: flat stays flat
     contrast = cv2.divide(cv2.subtract(gray, mean, dtype=cv2.CV_32F), spread)
     return cv2.addWeighted(contrast, _CONTRAST_SCALE, contrast, 0.0, 128.0, dtype=cv2.CV_8U)  # saturating
-
-
-_CONTRAST_SCALE = 40.0  # grey levels per local standard deviation: +-3 sigma fit in 8 bits
 
 
 @dataclass
