@@ -112,6 +112,10 @@ class FeatureNetConfig:
     # How the heatmap is read to sub-pixel positions (`models.keypoints.parse_refinement`): the one these
     # weights were trained for, which export and evaluation use unless told otherwise.
     refinement: str = "centroid"
+    # 1: the stem conv runs at H and a max-pool halves it (every model trained before this field); 2: the stem
+    # conv itself has stride 2, so nothing runs at full resolution (a full-resolution conv and max-pool were a
+    # fifth of the 480x752 graph's time in onnxruntime). Needs blocks[0] == 0.
+    stem_stride: int = 1
 
     def __post_init__(self) -> None:
         if len(self.widths) != 4 or len(self.blocks) != 4:
@@ -140,6 +144,9 @@ class FeatureNetConfig:
         parse_refinement(self.refinement)  # ValueError names the bad text
         if self.deform_scale not in (2, 3):
             raise ValueError("deform_scale must be 2 (H/4) or 3 (H/8)")
+        if int(self.stem_stride) not in (1, 2) or (int(self.stem_stride) == 2 and int(self.blocks[0])):
+            raise ValueError("stem_stride must be 1, or 2 with no blocks at full resolution (blocks[0] = 0)")
+        self.stem_stride = int(self.stem_stride)
         self.widths = [int(w) for w in self.widths]
         self.blocks = [int(b) for b in self.blocks]
 
@@ -329,12 +336,16 @@ class FeatureNet(nn.Module):
         cfg = self.config
         act = cfg.activation
         self.stem = nn.Sequential(
-            nn.Conv2d(1, cfg.widths[0], 3, padding=1, bias=False), nn.BatchNorm2d(cfg.widths[0]), make_activation(act)
+            nn.Conv2d(1, cfg.widths[0], 3, stride=cfg.stem_stride, padding=1, bias=False), nn.BatchNorm2d(cfg.widths[0]),
+            make_activation(act),
         )
         stages: list[nn.Module] = []
         channels = cfg.widths[0]
         for scale, (width, count) in enumerate(zip(cfg.widths, cfg.blocks)):
-            layers: list[nn.Module] = [nn.MaxPool2d(2, 2)] if scale > 0 else []
+            # A strided stem already halved the image: an Identity keeps the module indices (and so the
+            # checkpoint keys) of the max-pool it replaces.
+            downsample = nn.Identity() if scale == 1 and cfg.stem_stride == 2 else nn.MaxPool2d(2, 2)
+            layers: list[nn.Module] = [downsample] if scale > 0 else []
             for _ in range(count):
                 layers.append(DepthwiseSeparableBlock(channels, width, act))
                 channels = width
@@ -377,7 +388,7 @@ class FeatureNet(nn.Module):
             x = activation(x)
         for scale, stage in enumerate(self.stages):
             if deferred and scale == 1:
-                x = stage[1:](activation(stage[0](x)))  # stage[0] is the max-pool
+                x = stage[1:](activation(stage[0](x)))  # stage[0] is the max-pool (Identity after a strided stem)
             else:
                 x = stage(x)
             if self.config.deformable and scale == self.config.deform_scale:

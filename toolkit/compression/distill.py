@@ -55,6 +55,16 @@ def distillation_loss(student: dict[str, torch.Tensor], teacher: dict[str, torch
     return detector + descriptor
 
 
+def optimiser_step(optimizer: torch.optim.Optimizer, loss: torch.Tensor, step: int, what: str = "distillation") -> float:
+    """One optimiser step on ``loss``; returns its value. A non-finite loss is a `ToolkitError` naming the step."""
+    if not torch.isfinite(loss):
+        raise ToolkitError(f"{what} diverged at step {step} (loss {float(loss)}); try a lower learning rate")
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    return float(loss.detach())
+
+
 def _labelled_pairs(images: Path, labels: Path, seed: int):
     try:
         from toolkit.training.homographies import HomographyConfig
@@ -114,12 +124,7 @@ def distill(
             split_a = {key: value[:count] for key, value in outputs.items()}
             split_b = {key: value[count:] for key, value in outputs.items()}
             loss = loss + task_loss(split_a, split_b, batch, loss_config)["loss"]
-        if not torch.isfinite(loss):
-            raise ToolkitError(f"distillation diverged at step {step} (loss {float(loss)}); try a lower learning rate")
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        losses.append(float(loss.detach()))
+        losses.append(optimiser_step(optimizer, loss, step))
     student.requires_grad_(False).eval()
     return DistillResult(
         steps=config.steps,

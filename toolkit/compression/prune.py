@@ -163,7 +163,7 @@ def config_of(model: FeatureNet) -> FeatureNetConfig:
     widths = list(base.widths)
     widths[0] = model.stem[0].out_channels
     for scale, stage in enumerate(model.stages):
-        blocks = [m for m in stage if not isinstance(m, nn.MaxPool2d)]
+        blocks = [m for m in stage if not isinstance(m, (nn.MaxPool2d, nn.Identity))]
         outs = {block.pointwise.out_channels for block in blocks}
         if len(outs) > 1:
             raise ToolkitError(f"pruned stage {scale} has unequal block widths {sorted(outs)}; the config cannot express it")
