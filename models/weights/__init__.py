@@ -1,5 +1,6 @@
-"""The shipped default weights: ``featurenet-elu`` (the paper's activation) and ``featurenet-relu``
-(the deploy variant: ReLU fuses into Conv and quantises), each a safetensors checkpoint with a model card
+"""The shipped weights: the defaults ``featurenet-elu`` (the paper's activation) and ``featurenet-relu`` (the
+deploy variant: ReLU fuses into Conv and quantises), and ``featurenet-slim-relu`` (a faster student of the ReLU
+one for large inputs, opt-in), each a safetensors checkpoint with a model card
 (``MODEL_CARD-<name>.md``: data, licences, teacher, recipe, budget, metrics, limits) beside it.
 
 They install with the package (package data), so every command's ``--model default`` /
@@ -12,7 +13,9 @@ from pathlib import Path
 from models.errors import ModelError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent
-SHIPPED = ("featurenet-elu", "featurenet-relu")
+# featurenet-slim-relu: featurenet-relu with a stride-2 stem and a quarter of its channels cut, distilled from it
+# (toolkit/compression/slim.py): 0.7 of its time at the drone camera's 480x752, not a default (docs/compression.md)
+SHIPPED = ("featurenet-elu", "featurenet-relu", "featurenet-slim-relu")
 DEFAULT = "featurenet-elu"
 
 
@@ -31,13 +34,14 @@ def model_card(name: str = DEFAULT) -> Path:
 
 
 ALIASES = {"default": "featurenet-elu", "default-elu": "featurenet-elu", "default-relu": "featurenet-relu",
-           "featurenet-elu": "featurenet-elu", "featurenet-relu": "featurenet-relu"}
+           "featurenet-elu": "featurenet-elu", "featurenet-relu": "featurenet-relu",
+           "slim-relu": "featurenet-slim-relu", "featurenet-slim-relu": "featurenet-slim-relu"}
 
 
 def resolve_checkpoint(spec: str | Path | None) -> Path:
     """A ``--checkpoint`` value -> a file: None or ``default`` is the shipped ELU model, ``default-relu``
-    the ReLU one (``featurenet-elu|relu`` also name them); anything else is a path, returned as given
-    unless a file of that alias name exists in the working directory."""
+    the ReLU one, ``slim-relu`` the slim ReLU one (``featurenet-elu|relu|slim-relu`` also name them); anything
+    else is a path, returned as given unless a file of that alias name exists in the working directory."""
     if spec is None:
         return shipped_checkpoint(DEFAULT)
     text = str(spec)
