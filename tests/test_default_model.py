@@ -44,7 +44,13 @@ def test_shipped_weights_load_and_match_their_model_card(name: str) -> None:
 def test_default_names_resolve_to_the_shipped_files() -> None:
     assert resolve_checkpoint(None) == shipped_checkpoint("featurenet-elu")
     assert resolve_checkpoint("default-relu") == shipped_checkpoint("featurenet-relu")
+    assert resolve_checkpoint("slim-relu") == shipped_checkpoint("featurenet-slim-relu")
     assert resolve_checkpoint("runs/x.safetensors") == Path("runs/x.safetensors")
+    from toolkit.evaluation.detectors import load_detector
+
+    # `eval --model` reads the same names as `--checkpoint`
+    assert load_detector("slim-relu", DetectorConfig()).label == "featurenet-slim-relu"
+    assert load_detector("default", DetectorConfig()).label == "featurenet-elu"
 
 
 def test_default_artefact_follows_the_shipped_relu_weights(tmp_path: Path) -> None:

@@ -95,10 +95,6 @@ def split_label(spec: str) -> tuple[str | None, str]:
     return None, spec
 
 
-SHIPPED_SPECS = {"default": "featurenet-elu", "default-relu": "featurenet-relu",
-                 "featurenet-elu": "featurenet-elu", "featurenet-relu": "featurenet-relu"}
-
-
 def load_detector(spec: str, config: DetectorConfig) -> Detector:
     """Build the detector a ``--model`` spec names; raise `ToolkitError` for a spec that names nothing usable."""
     label, target = split_label(spec.strip())
@@ -116,11 +112,13 @@ def load_detector(spec: str, config: DetectorConfig) -> Detector:
 
         name = target.split(":", 1)[1]
         return teacher_detector(name, config, label or f"teacher {name}")
-    if lowered in SHIPPED_SPECS:
+    from models.weights import ALIASES  # the shipped weights' names, as --checkpoint reads them
+
+    if lowered in ALIASES:
         from models.weights import shipped_checkpoint
         from toolkit.evaluation.torch_models import checkpoint_detector
 
-        return checkpoint_detector(shipped_checkpoint(SHIPPED_SPECS[lowered]), config, label or SHIPPED_SPECS[lowered])
+        return checkpoint_detector(shipped_checkpoint(ALIASES[lowered]), config, label or ALIASES[lowered])
     if lowered.startswith("superpoint:"):
         from toolkit.evaluation.torch_models import superpoint_detector
 
