@@ -9,10 +9,9 @@ import torch
 from models.checkpoint import load_checkpoint, save_checkpoint
 from models.featurenet import FeatureNet, FeatureNetConfig
 from toolkit.compression.distill import distillation_loss
-from toolkit.compression.images import find_images
+from toolkit.compression.images import find_images, load_images
 from toolkit.compression.prune import config_of, prune_channels, rebuild
 from toolkit.compression.proxy import calibrated_random_featurenet
-from toolkit.compression.images import load_images
 from toolkit.compression.slim import SlimDistillConfig, _load_gray, distill_slim, make_batch, restem
 from toolkit.training.augment import AugmentConfig
 
@@ -84,7 +83,9 @@ def test_distillation_brings_the_student_towards_the_teacher(teacher, shared_dat
             return float(distillation_loss(student.eval()(held_out), teacher.eval()(held_out), config.temperature))
 
     before = gap()
+    sampling = teacher.deform.strategy
     rows = distill_slim(student, teacher, images, config, log=lambda _text: None)
+    assert teacher.deform.strategy == sampling  # trained through grid_sample, handed back as it came
     after = gap()
     assert len(rows) == 1 and np.isfinite(rows[0]["loss"])
     assert after < 0.8 * before, (before, after)

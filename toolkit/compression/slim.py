@@ -2,7 +2,7 @@
 
 At the drone camera's 480x752 the shipped network takes 25-32 ms a frame on one x86 core (onnxruntime), so the
 whole VO cannot reach 30 frames a second. Two changes cut the graph to ~0.7 of its time (measured side by side,
-random weights, docs/vo_euroc.md): the stem conv gets stride 2 (no conv and max-pool at full resolution) and
+random weights, docs/compression.md): the stem conv gets stride 2 (no conv and max-pool at full resolution) and
 every group of channels loses a share (`prune_channels`, DepGraph). The student starts from the teacher's own
 weights (`restem` keeps them) and learns to reproduce the teacher's heads, the 65-way cell distribution and the
 descriptors, on real images under the training's photometric and low-light augmentation (`distill_slim`).
@@ -22,12 +22,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from models.deform import set_deform_strategy
+from models.deform import DeformableConv, set_deform_strategy
 from models.featurenet import FeatureNet, FeatureNetConfig
 from toolkit.compression.distill import distillation_loss, optimiser_step
 from toolkit.compression.images import find_images
 from toolkit.errors import ToolkitError
 from toolkit.training.augment import AugmentConfig, photometric_augment
+from toolkit.training.config import warmup_cosine
+from vo_runtime.image_decode import decode_image
 
 
 def restem(model: FeatureNet) -> FeatureNet:
@@ -61,8 +63,8 @@ class SlimDistillConfig:
 def _load_gray(paths: list[Path]) -> list[np.ndarray]:
     images = []
     for path in paths:
-        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if image is not None:
+        image, _native = decode_image(np.fromfile(str(path), dtype=np.uint8), cv2.IMREAD_GRAYSCALE)
+        if image is not None:  # an unreadable file is skipped, as toolkit label does
             images.append(image)
     if not images:
         raise ToolkitError("no readable image among the distillation images")
@@ -109,12 +111,7 @@ class _Batches(torch.utils.data.Dataset):
 
 
 def _learning_rate(config: SlimDistillConfig, step: int, total: int) -> float:
-    warmup = max(1, min(200, total // 10))
-    if step < warmup:
-        return config.lr * (step + 1) / warmup
-    progress = (step - warmup) / max(1, total - warmup)
-    floor = config.lr * config.lr_final_fraction
-    return floor + 0.5 * (config.lr - floor) * (1.0 + math.cos(math.pi * min(progress, 1.0)))
+    return warmup_cosine(config.lr, step, total, min(200, total // 10), config.lr_final_fraction)
 
 
 def distill_slim(student: FeatureNet, teacher: nn.Module, image_dir: str | Path, config: SlimDistillConfig,
@@ -129,6 +126,8 @@ def distill_slim(student: FeatureNet, teacher: nn.Module, image_dir: str | Path,
     batches = torch.utils.data.DataLoader(_Batches(images, config), batch_size=None, shuffle=False,
                                           num_workers=config.workers, pin_memory=device.type == "cuda",
                                           persistent_workers=config.workers > 0)
+    strategies = {model: {layer.strategy for layer in model.modules() if isinstance(layer, DeformableConv)}
+                  for model in (student, teacher)}
     for model in (student, teacher):
         set_deform_strategy(model, "grid_sample")  # same values as the gather sampler, faster to train
     teacher = teacher.to(device).eval().requires_grad_(False)
@@ -160,6 +159,9 @@ def distill_slim(student: FeatureNet, teacher: nn.Module, image_dir: str | Path,
         if save is not None and (step + 1) % config.checkpoint_every == 0:
             save(student, step + 1)
     student.eval().requires_grad_(False)
+    for model, used in strategies.items():  # the caller's models sample as they did before
+        if len(used) == 1:
+            set_deform_strategy(model, used.pop())
     if save is not None:
         save(student, min(total, config.steps))
     return rows

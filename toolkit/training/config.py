@@ -81,11 +81,16 @@ class TrainConfig:
         if self.lr_schedule == "constant":
             return self.lr
         warmup = min(self.warmup_steps, self.steps // 10)  # a short run keeps most of its steps at full rate
-        if step < warmup:
-            return self.lr * (step + 1) / warmup
-        progress = min(1.0, (step - warmup) / max(1, self.steps - warmup))
-        floor = self.lr_final_fraction
-        return self.lr * (floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * progress)))
+        return warmup_cosine(self.lr, step, self.steps, warmup, self.lr_final_fraction)
+
+
+def warmup_cosine(lr: float, step: int, total: int, warmup: int, final_fraction: float) -> float:
+    """Learning rate of step ``step`` (0-based) of ``total``: linear warm-up over ``warmup`` steps, then cosine
+    decay from ``lr`` to ``final_fraction * lr``."""
+    if step < warmup:
+        return lr * (step + 1) / warmup
+    progress = min(1.0, (step - warmup) / max(1, total - warmup))
+    return lr * (final_fraction + (1.0 - final_fraction) * 0.5 * (1.0 + math.cos(math.pi * progress)))
 
 
 def _type_name(value: Any) -> str:
