@@ -80,3 +80,40 @@ def test_a_two_view_model_explaining_too_few_tracks_is_refused():
     assert initialiser.try_initialise(1, poses, None) is None
     initialiser.config.init_min_inlier_share = 0.0  # the gate off: the same tracks make a map
     assert initialiser.try_initialise(1, poses, None) is not None
+
+
+def _views_with_dying_chains(translation: tuple[float, float, float], turn_deg: float, survivors: int = 60):
+    """Reference, a frame halfway where only ``survivors`` chains hold (the rest resume from the reference),
+    and the current view of a rigid scene after ``translation`` and a turn; the initialiser holding them and
+    the tracks' median motion in pixels."""
+    rng = np.random.default_rng(5)
+    world = np.column_stack([rng.uniform(-3, 3, N), rng.uniform(-2, 2, N), rng.uniform(4, 8, N)])
+    angle = np.radians(turn_deg)
+    rotation = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    views = [world, (world + world @ rotation.T + translation) / 2, world @ rotation.T + translation]
+    points = [view[:, :2] / view[:, 2:] for view in views]
+    broken = DESCRIPTORS.copy()
+    fresh = rng.normal(size=(N - survivors, 64))
+    broken[survivors:] = fresh / np.linalg.norm(fresh, axis=1, keepdims=True)
+    initialiser = Initialiser(VOConfig(), focal=500.0)
+    initialiser.restart(0, FrameData.build(points[0], 500.0 * points[0], DESCRIPTORS))
+    initialiser.add(1, FrameData.build(points[1], 500.0 * points[1], broken))
+    initialiser.add(2, FrameData.build(points[2], 500.0 * points[2], DESCRIPTORS))
+    motion = float(np.median(np.linalg.norm(points[2] - points[0], axis=1)) * 500.0)
+    return initialiser, motion
+
+
+def test_dying_chains_do_not_waive_the_ray_angle_gate():
+    initialiser, motion = _views_with_dying_chains((0.15, 0.0, 0.0), 0.0)
+    tracks = initialiser._previous[1]
+    assert np.count_nonzero((tracks.first_frame == 0) & ~tracks.resumed) == 60  # dying: under 3 x min_matches
+    assert np.count_nonzero(tracks.first_frame == 0) == N  # the broken chains resumed from the reference
+    # Between a third of the parallax gate and the gate (dying chains try from a third), ray angles of 1-2 deg:
+    # the angle gate, once waived for dying chains, refuses the map.
+    assert VOConfig().init_min_parallax_px / 3 < motion < VOConfig().init_min_parallax_px
+    assert initialiser.try_initialise(2, [np.eye(4)] * 3, None) is None
+    # A real baseline passes both gates with the same dying chains.
+    initialiser, motion = _views_with_dying_chains((0.6, 0.05, 0.1), 1.0)
+    assert motion > VOConfig().init_min_parallax_px
+    result = initialiser.try_initialise(2, [np.eye(4)] * 3, None)
+    assert result is not None and np.median(result.angles) >= VOConfig().init_min_median_deg

@@ -25,7 +25,7 @@ class VOConfig:
     pnp_threshold_px: float = 3.0        # pose inlier gate (reprojection error)
     triangulation_threshold_px: float = 3.0  # largest reprojection error of a new landmark in either view
     init_min_parallax_px: float = 15.0   # median track motion before a two-view initialisation is tried
-    init_min_median_deg: float = 2.0     # median ray angle of those landmarks (unless the tracks are dying)
+    init_min_median_deg: float = 2.0     # median ray angle of those landmarks
     init_min_landmarks: int = 40         # triangulated points an initialisation must produce
     # Share of the tracks from the reference that the two-view model (essential matrix or homography) must
     # explain. A rigid scene seen through good tracks fits 50-90 %; the drone's take-off (a fast rotation
