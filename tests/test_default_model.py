@@ -133,13 +133,17 @@ def test_mass_scoring_matches_more_points_at_480x640(shared_data: Path) -> None:
     assert score[5] > score[1] + 0.02, score
 
 
-def test_wide_default_artefact_is_the_shipped_relu_weights_at_euroc_aspect() -> None:
+def test_wide_default_artefact_is_the_slim_weights_at_euroc_aspect() -> None:
     # The artefact chosen for 752x480-like cameras (EuRoC's VI-sensor), exported by
-    # toolkit export --target x86-cpu --checkpoint default-relu --input-size 480x752 -o vo_runtime/default_artefact_wide
+    # toolkit export --target x86-cpu --checkpoint slim-relu --input-size 480x752 --max-keypoints 512 \
+    #     -o vo_runtime/default_artefact_wide
+    # (the slim network with 512 keypoints: level with the full one over 18 EuRoC starts, 30 FPS on one core
+    # against 22; docs/vo_euroc.md)
     from vo_runtime.artefact import WIDE_ARTEFACT_DIR, default_artefact, verify_artefact
 
     manifest = verify_artefact(WIDE_ARTEFACT_DIR)
-    digest = hashlib.sha256(shipped_checkpoint("featurenet-relu").read_bytes()).hexdigest()
+    digest = hashlib.sha256(shipped_checkpoint("featurenet-slim-relu").read_bytes()).hexdigest()
     assert manifest["model"]["checkpoint_sha256"] == digest and manifest["target"] == "x86-cpu"
     assert manifest["input"]["shape"] == [1, 1, 480, 752]
+    assert manifest["model"]["config"]["stem_stride"] == 2 and manifest["postprocess"]["max_keypoints"] == 512
     assert default_artefact(752, 480) == WIDE_ARTEFACT_DIR and default_artefact(640, 480) != WIDE_ARTEFACT_DIR
