@@ -98,19 +98,19 @@ def _states(run: Path) -> list[str]:
 @pytest.mark.parametrize("entry", ENTRIES, ids=list(ENTRIES))
 def test_corrupt_frame_mid_sequence_is_skipped_and_tracking_resumes(entry, tmp_path, capsys):
     space = Space(tmp_path, None)
-    sequence = _kitti_copy(space, 14)  # ORB initialises at frame 7 here (the 2 degree gate)
-    (sequence / "image_0" / "000009.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    sequence = _kitti_copy(space, 17)  # ORB initialises at frame 10 here (the 2 degree gate)
+    (sequence / "image_0" / "000012.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
     before = (sequence / "image_0" / "000004.png").read_bytes()
     code = ENTRIES[entry](["--features", "orb", "--images", str(sequence), "--no-progress", "--json",
                            "-o", str(tmp_path / "run")])
     captured = capsys.readouterr()
     assert code == 0
     summary = json.loads(captured.out)
-    assert summary["skipped_frames"] == 1 and summary["frames"] == 14
-    assert captured.err.startswith("warning: skipped 1 of 14 frames") and "000009.png" in captured.err
+    assert summary["skipped_frames"] == 1 and summary["frames"] == 17
+    assert captured.err.startswith("warning: skipped 1 of 17 frames") and "000012.png" in captured.err
     assert "[ERROR" not in captured.err and "Traceback" not in captured.err
     states = _states(tmp_path / "run")
-    assert states[8] == "tracking" and states[9] == "skipped" and states[10:] == ["tracking"] * 4
+    assert states[11] == "tracking" and states[12] == "skipped" and states[13:] == ["tracking"] * 4
     assert (sequence / "image_0" / "000004.png").read_bytes() == before  # the input is only read
     # Rerunning into the same folder needs --force, and --force replaces the earlier run.
     assert ENTRIES[entry](["--features", "orb", "--images", str(sequence), "-o", str(tmp_path / "run")]) == 2
@@ -125,7 +125,7 @@ def test_16_bit_frames_track_like_their_8_bit_originals(tmp_path, capsys):
     for bit16 in (False, True):
         space = Space(tmp_path / str(bit16), None)
         space.root.mkdir()
-        sequence = _kitti_copy(space, 10, bit16=bit16)  # ORB tracks from frame 7
+        sequence = _kitti_copy(space, 13, bit16=bit16)  # ORB tracks from frame 10
         assert vo_runtime.cli.main(["--features", "orb", "--images", str(sequence), "--no-progress",
                                     "-o", str(space.root / "run")]) == 0
         runs[bit16] = json.loads((space.root / "run" / "frames.json").read_text())
