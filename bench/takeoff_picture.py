@@ -1,7 +1,9 @@
 """The picture of docs/vo_takeoff.md: the drone's take-off on EuRoC MH_05 (frames 10, 33 and 45) as recorded and
-through ``--lowlight dark``, with the keypoints the shipped artefact (green) and ORB 2000 (red) detect in the dark.
+through ``--lowlight dark``, with the keypoints a network artefact (green; default: the one shipped for this
+camera) and ORB 2000 (red) detect in the dark.
 
     python bench/takeoff_picture.py                  # writes docs/vo_takeoff_frames.png
+    python bench/takeoff_picture.py --artefact DIR -o /tmp/takeoff.png   # e.g. the full network at 480x752
     python bench/takeoff_picture.py --frames 0,20,40 -o /tmp/takeoff.png
 """
 from __future__ import annotations
@@ -25,6 +27,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sequence", type=Path, default=ROOT.parent / "shared/data/euroc_mh05_f000000-000199")
     parser.add_argument("--frames", default="10,33,45")
+    parser.add_argument("--artefact", type=Path, help="default: the artefact shipped for the sequence's camera")
     parser.add_argument("-o", "--output", type=Path, default=ROOT / "docs" / "vo_takeoff_frames.png")
     args = parser.parse_args()
     import matplotlib
@@ -36,7 +39,8 @@ def main() -> int:
     frames = [int(v) for v in args.frames.split(",")]
     gray = [to_gray_u8(read_frame(sequence.frames[i])) for i in frames]
     height, width = gray[0].shape
-    learned, orb = FeatureExtractor(default_artefact(width, height), threads=1), OrbExtractor(2000)
+    learned = FeatureExtractor(args.artefact or default_artefact(width, height), threads=1)
+    orb = OrbExtractor(2000)
     fig, axes = plt.subplots(2, len(frames), figsize=(4.3 * len(frames), 5.8), dpi=64)
     for column, (index, image) in enumerate(zip(frames, gray)):
         dark = PRESETS["dark"](image, seed=index)
