@@ -117,3 +117,44 @@ def test_dying_chains_do_not_waive_the_ray_angle_gate():
     assert motion > VOConfig().init_min_parallax_px
     result = initialiser.try_initialise(2, [np.eye(4)] * 3, None)
     assert result is not None and np.median(result.angles) >= VOConfig().init_min_median_deg
+
+
+
+def _near_and_far(near: int, far: int, survivors: int | None = None) -> Initialiser:
+    """Reference, a frame halfway and the current view (a 0.5-unit step and a 3 deg turn) of ``near`` points
+    4-8 units away and ``far`` points 500-1000 away (too little ray angle for a landmark); with ``survivors``
+    only that many chains hold through the middle frame (dying tracks, the rest resumed from the reference)."""
+    rng = np.random.default_rng(3)
+    count = near + far
+    depth = np.r_[rng.uniform(4, 8, near), rng.uniform(500, 1000, far)]
+    world = np.column_stack([rng.uniform(-0.6, 0.6, count) * depth, rng.uniform(-0.4, 0.4, count) * depth, depth])
+    angle = np.radians(3.0)
+    rotation = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    views = [world, (world + world @ rotation.T + (0.5, 0.05, 0.1)) / 2, world @ rotation.T + (0.5, 0.05, 0.1)]
+    points = [view[:, :2] / view[:, 2:] for view in views]
+    middle = DESCRIPTORS[:count].copy()
+    if survivors is not None:
+        fresh = rng.normal(size=(count - survivors, 64))
+        middle[survivors:] = fresh / np.linalg.norm(fresh, axis=1, keepdims=True)
+    initialiser = Initialiser(VOConfig(init_wanted_landmarks=100), focal=500.0)
+    initialiser.restart(0, FrameData.build(points[0], 500.0 * points[0], DESCRIPTORS[:count]))
+    initialiser.add(1, FrameData.build(points[1], 500.0 * points[1], middle))
+    initialiser.add(2, FrameData.build(points[2], 500.0 * points[2], DESCRIPTORS[:count]))
+    return initialiser
+
+
+def test_healthy_tracks_wait_for_the_wanted_landmarks_and_dying_ones_do_not():
+    poses = [np.eye(4)] * 3
+    # 120 unbroken tracks (not dying: >= 3 x min_matches) but only 80 landmarks: wait for the wanted 100 ...
+    assert _near_and_far(80, 40).try_initialise(2, poses, None) is None
+    # ... which the same views give without the gate (init_wanted_landmarks no higher than the minimum) ...
+    initialiser = _near_and_far(80, 40)
+    initialiser.config.init_wanted_landmarks = initialiser.config.init_min_landmarks
+    result = initialiser.try_initialise(2, poses, None)
+    assert result is not None and 40 <= len(result.world) < 100
+    # ... and with dying tracks (60 unbroken chains) the minimum is enough.
+    result = _near_and_far(80, 40, survivors=60).try_initialise(2, poses, None)
+    assert result is not None and 40 <= len(result.world) < 100
+    # Healthy tracks with 120 landmarks: a map at once.
+    result = _near_and_far(120, 20).try_initialise(2, poses, None)
+    assert result is not None and len(result.world) >= 100

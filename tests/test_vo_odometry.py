@@ -201,6 +201,26 @@ def test_unmatched_frame_loses_tracking_then_reinitialises_at_the_old_speed():
     assert after == pytest.approx(before, rel=0.05)
 
 
+@pytest.mark.parametrize("speed_frames", [1, 20])
+def test_reinitialisation_scale_is_the_median_speed_before_the_loss(speed_frames):
+    # Frames 26-29 creep at a tenth of the speed (as a failing map's shrinking last steps look), then the
+    # camera is lost at frame 30 and moves on at full speed: the new map's scale follows the median speed of
+    # the last speed_frames tracked frames (20: the full speed; 1: the creep, ten times too short).
+    poses = straight_then_turn(60)
+    steps = np.diff([pose[:3, 3] for pose in poses], axis=0, prepend=np.zeros((1, 3)))
+    steps[26:30] *= 0.1
+    for pose, position in zip(poses, np.cumsum(steps, axis=0)):
+        pose[:3, 3] = position
+    vo = run(SyntheticExtractor(poses, scramble=frozenset({30})), 60,
+             VOConfig(relocalise_keyframes=0, lost_predict_frames=0, speed_frames=speed_frames))
+    statuses = [r.status for r in vo.results]
+    assert REINITIALISED in statuses[31:]
+    est = np.array([r.pose[:3, 3] for r in vo.results])
+    before = np.linalg.norm(est[20] - est[19])   # full speed, the first map's scale
+    after = np.linalg.norm(est[59] - est[58])
+    assert after == pytest.approx(before if speed_frames == 20 else 0.1 * before, rel=0.1)
+
+
 @pytest.mark.parametrize("bad", [{30}, {30, 31}])
 def test_after_a_loss_the_motion_model_tracks_the_next_good_frame_against_the_map(bad):
     poses = straight_then_turn(60)
@@ -257,6 +277,8 @@ def test_config_is_validated():
         VOConfig(min_matches=3)
     with pytest.raises(VORuntimeError):
         VOConfig(initial_baseline=0)
+    with pytest.raises(VORuntimeError):
+        VOConfig(speed_frames=0)
 
 
 def test_result_fields():

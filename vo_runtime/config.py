@@ -26,7 +26,13 @@ class VOConfig:
     triangulation_threshold_px: float = 3.0  # largest reprojection error of a new landmark in either view
     init_min_parallax_px: float = 15.0   # median track motion before a two-view initialisation is tried
     init_min_median_deg: float = 2.0     # median ray angle of those landmarks
-    init_min_landmarks: int = 40         # triangulated points an initialisation must produce
+    init_min_landmarks: int = 40         # triangulated points an initialisation must produce ...
+    # ... or this many while the tracks from the reference are not dying (as the parallax gate relaxes only
+    # for dying tracks). Off (= init_min_landmarks) by default: 100 cured the drone's weak mid-flight first maps
+    # in the dark (EuRoC from frames 40-170: worst ATE 0.515 -> 0.017 m, geometric mean 0.0127 -> 0.0092) but
+    # cost KITTI 07 in the dark and with the onboard light (0.230 -> 0.268, 0.211 -> 0.233 m), whose forward
+    # motion needs its first map early (docs/vo_takeoff.md, "Mid-flight"). A drone in the dark may set it.
+    init_wanted_landmarks: int = 40
     # Share of the tracks from the reference that the two-view model (essential matrix or homography) must
     # explain. A rigid scene seen through good tracks fits 50-90 %; the drone's take-off (a fast rotation
     # onset with a few mm of baseline, EuRoC MH_05) fitted 24-45 %: a model fitted to noise, whose map then
@@ -57,6 +63,11 @@ class VOConfig:
     # dark) does not throw away the map's prediction (0: relocalisation only).
     lost_predict_frames: int = 3
     initial_baseline: float = 1.0        # length of the first baseline, in output units
+    # A re-initialisation after a loss is scaled by the speed before it: the median over this many tracked
+    # frames, not the last one, because a map that is failing shrinks its scale in its last frames (EuRoC's
+    # normal-light take-off with init_min_landmarks=100: the last speed was ~1 % of the true one and the new
+    # map kept that scale; with the median 24 %, the rest being the drone's real acceleration while lost).
+    speed_frames: int = 20
     # Patch alignment (`refine.py`): matched keypoints move onto the patch around the landmark's latest
     # keyframe observation (window in frame pixels; 0: off) before the pose and new landmarks are computed.
     # It runs when a detector pixel spans at least `align_min_detector_pixel` frame pixels (an artefact that
@@ -90,6 +101,8 @@ class VOConfig:
             raise VORuntimeError("align_window_px must be >= 0, align_max_shift > 0 and align_gain >= 1")
         if self.probation_frames < 0 or self.probation_max_deg <= 0 or self.probation_max_discards < 0:
             raise VORuntimeError("probation_frames and probation_max_discards must be >= 0, probation_max_deg > 0")
+        if self.speed_frames < 1:
+            raise VORuntimeError("speed_frames must be >= 1")
         if not 0 < self.search_radius_px <= self.wide_search_radius_px:
             raise VORuntimeError("search radii must be positive, the wide one no smaller")
 

@@ -135,6 +135,8 @@ class Initialiser:
         best.sort(key=lambda item: -item[0])
         if not best or best[0][0] < cfg.init_min_landmarks:
             return None
+        if best[0][0] < cfg.init_wanted_landmarks and not dying:
+            return None  # a richer first map may come with a few more frames of motion
         if len(best) > 1 and best[1][0] > 0.75 * best[0][0]:
             return None  # ambiguous homography decomposition: wait for more motion
         _, self.model, pose, inliers, world, angles, good = best[0]

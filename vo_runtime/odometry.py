@@ -118,6 +118,7 @@ class MonoVO(KeyframeUpkeep):
         self._lost_since = -1                        # first frame of the current loss (-1: not lost)
         self._velocity = np.eye(4)                   # last inter-frame motion (world-to-camera increment)
         self._speed: float | None = None             # world units per frame, for re-initialisation
+        self._speeds: list[float] = []               # per tracked frame, the latest `speed_frames`
 
     @property
     def observations(self) -> tuple[np.ndarray, np.ndarray | None] | None:
@@ -349,7 +350,9 @@ class MonoVO(KeyframeUpkeep):
             gap = index - self._last_tracked
             step = pose @ invert_pose(self._poses_cw[self._last_tracked])
             self._velocity = step if gap == 1 else self._velocity
-            self._speed = float(np.linalg.norm(camera_centre(pose) - camera_centre(self._poses_cw[self._last_tracked]))) / gap
+            travel = float(np.linalg.norm(camera_centre(pose) - camera_centre(self._poses_cw[self._last_tracked]))) / gap
+            self._speeds = (self._speeds + [travel])[-self.config.speed_frames:]
+            self._speed = float(np.median(self._speeds))
         else:
             self._velocity = np.eye(4)  # after a relocalisation the motion is unknown
         self._poses_cw[index] = pose
@@ -403,6 +406,7 @@ class MonoVO(KeyframeUpkeep):
         self._velocity = per_frame_motion(self._poses_cw[index] @ invert_pose(self._poses_cw[outcome.reference_index]),
                                           index - outcome.reference_index)
         self._speed = outcome.speed
+        self._speeds = [outcome.speed]
         if reinitialised:
             self._probation.end()
         else:
