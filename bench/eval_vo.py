@@ -103,6 +103,7 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, overr
            "initialised_at": first, "tracked": sum(s in TRACKED_STATES for s in after), "after_init": len(after),
            "states": {s: states.count(s) for s in dict.fromkeys(states)},
            "keyframes": sum(r.keyframe for r in results),
+           "first_map_landmarks": results[first].num_landmarks if first < len(results) else None,
            "fps": 1000.0 * len(results) / max(sum(r.extract_ms + r.track_ms for r in results), 1e-9),
            "extract_ms": float(np.median([r.extract_ms for r in results])),
            "track_ms": float(np.median([r.track_ms for r in results])), "ate": None, "rpe": None}

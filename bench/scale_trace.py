@@ -1,0 +1,145 @@
+"""Where a VO run breaks: its scale and rotation against the ground truth, frame by frame.
+
+    python bench/scale_trace.py --sequence ../shared/data/euroc_mh05_f000000-000199 --start 100 --light low
+    python bench/scale_trace.py ... --features orb --every 1 --plot runs/trace.png
+
+ATE says that a run failed; this says when and how. For every tracked frame i with a tracked frame i-k
+(``--gap``, default 5), it prints the estimated camera's travel over those k frames divided by the true
+travel (the local scale; normalised by its median over the first 20 tracked frames, so 1.0 is "the scale of
+the first map", and a collapse shows as a drop), the angle between the estimated and the true direction of
+travel, and the error of the relative rotation over the k frames, beside the frame's state, inliers and
+keyframe flag. Frames are darkened as `bench/eval_vo.py` does (the same seeds), so a start and light here is
+that table's run. Scale-free quantities only: no alignment, so one bad stretch does not smear over the rest.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.eval_vo import LIGHTS, parse_overrides  # noqa: E402
+from vo_runtime import FeatureExtractor, OrbExtractor, VisualOdometry, VOConfig  # noqa: E402
+from vo_runtime.artefact import default_artefact  # noqa: E402
+from vo_runtime.datasets import frame_size, open_sequence  # noqa: E402
+from vo_runtime.errors import VORuntimeError, first_line  # noqa: E402
+from vo_runtime.evaluate import sequence_groundtruth  # noqa: E402
+from vo_runtime.features import to_gray_u8  # noqa: E402
+from vo_runtime.mapping import MappingConfig  # noqa: E402
+from vo_runtime.odometry import TRACKED_STATES  # noqa: E402
+from vo_runtime.sequence import read_frames  # noqa: E402
+
+REFERENCE_FRAMES = 20  # tracked frames whose median local scale is 1.0
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    cos = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-12)
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def rotation_error_deg(estimated: np.ndarray, true: np.ndarray) -> float:
+    difference = estimated.T @ true
+    return float(np.degrees(np.arccos(np.clip((np.trace(difference) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def trace(results: list, truth: list[np.ndarray], gap: int) -> list[dict]:
+    """Per tracked frame with a tracked frame ``gap`` back: raw local scale, direction and rotation errors."""
+    rows = []
+    for result in results:
+        i = result.index
+        if i < gap or result.status not in TRACKED_STATES or results[i - gap].status not in TRACKED_STATES:
+            continue
+        estimated = np.linalg.inv(results[i - gap].pose) @ result.pose   # camera i in camera i-gap's frame
+        true = np.linalg.inv(truth[i - gap]) @ truth[i]
+        travel = float(np.linalg.norm(true[:3, 3]))
+        rows.append({"frame": i, "status": result.status, "inliers": result.num_inliers, "keyframe": result.keyframe,
+                     "scale": float(np.linalg.norm(estimated[:3, 3])) / max(travel, 1e-9), "travel_m": travel,
+                     "direction_deg": angle_deg(estimated[:3, 3], true[:3, 3]),
+                     "rotation_deg": rotation_error_deg(estimated[:3, :3], true[:3, :3])})
+    if rows:
+        reference = float(np.median([r["scale"] for r in rows[:REFERENCE_FRAMES]]))
+        for r in rows:
+            r["scale"] /= max(reference, 1e-12)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sequence", type=Path, required=True)
+    parser.add_argument("--start", type=int, default=0)
+    parser.add_argument("--light", choices=sorted(LIGHTS), default="normal")
+    parser.add_argument("--features", choices=("artefact", "orb"), default="artefact")
+    parser.add_argument("--artefact", type=Path, help="default: the shipped artefact for the camera")
+    parser.add_argument("--gap", type=int, default=5, help="frames between the two poses compared")
+    parser.add_argument("--every", type=int, default=5, help="print every this many frames")
+    parser.add_argument("--set", action="append", default=[], metavar="FIELD=JSON",
+                        help="a VOConfig field (mapping.FIELD for MappingConfig), as bench/eval_vo.py")
+    parser.add_argument("--plot", type=Path, help="also draw scale and errors against the frame index here")
+    args = parser.parse_args(argv)
+    try:
+        return run(args)
+    except VORuntimeError as exc:  # a bad path, layout or --set value
+        print(f"error: {first_line(exc)}", file=sys.stderr)
+        return 2
+
+
+def run(args: argparse.Namespace) -> int:
+    sequence = open_sequence(args.sequence)
+    if not 0 <= args.start < len(sequence.frames) - args.gap:
+        raise VORuntimeError(f"--start {args.start}: the sequence has {len(sequence.frames)} frames")
+    frames, stamps = sequence.frames[args.start:], sequence.timestamps[args.start:]
+    truth_all = sequence_groundtruth(sequence).poses_se3
+    truth = list(truth_all[args.start:])
+    if args.features == "orb":
+        extractor = OrbExtractor(2000)
+    else:
+        height, width = frame_size(sequence.camera, sequence.frames)
+        artefact = args.artefact or default_artefact(width, height)
+        extractor = FeatureExtractor(artefact, threads=1)
+    try:
+        overrides = parse_overrides(args.set)
+        mapping = MappingConfig(**{k.split(".", 1)[1]: v for k, v in overrides.items() if k.startswith("mapping.")})
+        config = VOConfig(**{k: v for k, v in overrides.items() if "." not in k}, mapping=mapping)
+    except (TypeError, ValueError) as exc:
+        raise VORuntimeError(f"--set {' '.join(args.set)}: {exc}") from None
+    vo = VisualOdometry(extractor, sequence.camera, config)
+    for index, image in enumerate(read_frames(frames)):
+        if LIGHTS[args.light] is not None:
+            image = LIGHTS[args.light](to_gray_u8(image), seed=args.start + index)
+        vo.track(image, stamps[index])
+    vo.finish()
+    rows = trace(vo.results, truth, args.gap)
+    print(f"{args.sequence.name} from {args.start}, {args.light} light, {args.features}: {len(rows)} frames traced "
+          f"(frame numbers from the start; scale 1.0 = median of the first {REFERENCE_FRAMES})")
+    print("frame  state          inliers  kf  scale  dir_err_deg  rot_err_deg  true_travel_mm")
+    for r in rows:
+        if r["frame"] % max(args.every, 1) == 0:
+            print(f"{r['frame']:5d}  {r['status']:13s}  {r['inliers']:7d}  {'K' if r['keyframe'] else ' ':2s}  "
+                  f"{r['scale']:5.2f}  {r['direction_deg']:11.1f}  {r['rotation_deg']:11.2f}  {1e3 * r['travel_m']:14.1f}")
+    if args.plot is not None and rows:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        frame = [r["frame"] + args.start for r in rows]
+        figure, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
+        for axis, key, label in zip(axes, ("scale", "direction_deg", "rotation_deg"),
+                                    ("local scale", "travel dir. error (deg)", "rotation error (deg)")):
+            axis.plot(frame, [r[key] for r in rows])
+            axis.set_ylabel(label)
+        axes[0].set_yscale("log")
+        axes[2].set_xlabel("frame of the sequence")
+        figure.suptitle(f"{args.sequence.name}, from {args.start}, {args.light} light, {args.features}, gap {args.gap}")
+        figure.tight_layout()
+        args.plot.parent.mkdir(parents=True, exist_ok=True)
+        figure.savefig(args.plot, dpi=90)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

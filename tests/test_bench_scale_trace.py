@@ -1,0 +1,54 @@
+"""bench/scale_trace.py: the local scale and errors it reports, on a trajectory whose answer is known."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.scale_trace import trace  # noqa: E402
+from vo_runtime.config import VOResult  # noqa: E402
+
+
+def _pose(x: float, yaw_deg: float = 0.0) -> np.ndarray:
+    angle = np.radians(yaw_deg)
+    pose = np.eye(4)
+    pose[:3, :3] = [[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]]
+    pose[0, 3] = x
+    return pose
+
+
+def test_a_scale_collapse_and_a_rotation_error_show_where_they_happen():
+    # The truth moves 1 m a frame along x; the estimate 0.5 m a frame (its own unit), then from frame 30 on
+    # 0.1 m a frame (the map shrank five-fold), and frame 40 is lost; from frame 50 on it turns 0.2 deg a
+    # frame that the truth does not.
+    truth = [_pose(float(i)) for i in range(60)]
+    position, results = 0.0, []
+    for i in range(60):
+        position += 0 if i == 0 else (0.5 if i < 30 else 0.1)
+        status = "lost" if i == 40 else "tracking"
+        results.append(VOResult(index=i, timestamp=0.1 * i, pose=_pose(position, 0.2 * max(0, i - 50)), status=status,
+                                num_features=500, num_matches=200, num_inliers=150, num_landmarks=150,
+                                extract_ms=0.0, track_ms=0.0))
+    rows = {r["frame"]: r for r in trace(results, truth, gap=1)}
+    assert rows[10]["scale"] == pytest.approx(1.0) and rows[29]["scale"] == pytest.approx(1.0)
+    assert rows[35]["scale"] == pytest.approx(0.2)
+    assert 40 not in rows and 41 not in rows  # a lost frame, and the frame after it, have no step
+    assert rows[35]["direction_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert rows[45]["rotation_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert rows[55]["rotation_deg"] == pytest.approx(0.2, abs=1e-6)
+
+
+def test_a_start_past_the_sequence_is_one_error_line(shared_data, tmp_path):
+    plot = tmp_path / "trace.png"
+    run = subprocess.run([sys.executable, str(ROOT / "bench" / "scale_trace.py"), "--sequence",
+                          str(shared_data / "tum_fr2_desk_snippet"), "--start", "100000", "--plot", str(plot)],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: --start 100000") and not plot.exists()
