@@ -22,14 +22,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.eval_vo import LIGHTS, parse_overrides  # noqa: E402
-from vo_runtime import FeatureExtractor, OrbExtractor, VisualOdometry, VOConfig  # noqa: E402
+from bench.eval_vo import LIGHTS  # noqa: E402
+from vo_runtime import FeatureExtractor, OrbExtractor, VisualOdometry  # noqa: E402
 from vo_runtime.artefact import default_artefact  # noqa: E402
+from vo_runtime.config_overrides import config_from_overrides  # noqa: E402
 from vo_runtime.datasets import frame_size, open_sequence  # noqa: E402
 from vo_runtime.errors import VORuntimeError, first_line  # noqa: E402
 from vo_runtime.evaluate import sequence_groundtruth  # noqa: E402
 from vo_runtime.features import to_gray_u8  # noqa: E402
-from vo_runtime.mapping import MappingConfig  # noqa: E402
 from vo_runtime.odometry import TRACKED_STATES  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
 
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--gap", type=int, default=5, help="frames between the two poses compared")
     parser.add_argument("--every", type=int, default=5, help="print every this many frames")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=JSON",
-                        help="a VOConfig field (mapping.FIELD for MappingConfig), as bench/eval_vo.py")
+                        help="a VOConfig knob, as the vo command's --set (VALUE as JSON; mapping.FIELD)")
     parser.add_argument("--plot", type=Path, help="also draw scale and errors against the frame index here")
     args = parser.parse_args(argv)
     try:
@@ -100,12 +100,7 @@ def run(args: argparse.Namespace) -> int:
         height, width = frame_size(sequence.camera, sequence.frames)
         artefact = args.artefact or default_artefact(width, height)
         extractor = FeatureExtractor(artefact, threads=1)
-    try:
-        overrides = parse_overrides(args.set)
-        mapping = MappingConfig(**{k.split(".", 1)[1]: v for k, v in overrides.items() if k.startswith("mapping.")})
-        config = VOConfig(**{k: v for k, v in overrides.items() if "." not in k}, mapping=mapping)
-    except (TypeError, ValueError) as exc:
-        raise VORuntimeError(f"--set {' '.join(args.set)}: {exc}") from None
+    config, _ = config_from_overrides(args.set)
     vo = VisualOdometry(extractor, sequence.camera, config)
     for index, image in enumerate(read_frames(frames)):
         if LIGHTS[args.light] is not None:

@@ -49,6 +49,14 @@ CASES: list[tuple[str, str, Callable[[Space], list]]] = [
     ("zero-blas-threads", "--blas-threads", lambda s: orb(s, "--blas-threads", "0")),
     ("negative-extract-ahead", "--extract-ahead", lambda s: orb(s, "--extract-ahead=-1")),
     ("nan-lowlight", "--lowlight", lambda s: orb(s, "--lowlight", "nan,3")),
+    # --set: a typo or a wrong type never runs the sequence with the default it meant to change
+    ("set-unknown-field", "VOConfig has no field 'init_wanted_landmark'",
+     lambda s: orb(s, "--set", "init_wanted_landmark=100")),
+    ("set-unknown-mapping-field", "MappingConfig has no field 'nope'", lambda s: orb(s, "--set", "mapping.nope=1")),
+    ("set-not-json", "the value is not JSON", lambda s: orb(s, "--set", "init_wanted_landmarks=many")),
+    ("set-wrong-type", "init_wanted_landmarks takes an integer, got 1.5", lambda s: orb(s, "--set", "init_wanted_landmarks=1.5")),
+    ("set-no-equals", "expected FIELD=VALUE", lambda s: orb(s, "--set", "init_wanted_landmarks")),
+    ("set-out-of-range", "speed_frames must be >= 1", lambda s: orb(s, "--set", "speed_frames=0")),
     # messages
     ("camera-without-images", "no image_9/ for --camera 9", lambda s: orb(s, "--camera", "9")),
     ("artefact-manifest-without-sha256", "records no sha256",

@@ -17,6 +17,7 @@ from threadpoolctl import threadpool_limits
 
 from vo_runtime.artefact import ASPECT_TOLERANCE, default_artefact
 from vo_runtime.clitools import command_parser, run_guarded
+from vo_runtime.config_overrides import config_from_overrides
 from vo_runtime.datasets import CAMERA_PRESETS, Sequence, frame_size, open_sequence
 from vo_runtime.errors import FrameError, VORuntimeError
 from vo_runtime.features import FeatureExtractor, OrbExtractor, to_gray_u8
@@ -56,6 +57,8 @@ sequence in the dark (seeded per frame): GAMMA,SIGMA[,GAIN] darkens every frame 
 GAIN default 1) and adds Gaussian noise of SIGMA grey levels; the preset dark is 2,3,0.3; the preset onboard
 is a light riding on the camera (a bright spot fixed in the image, dim ambient, vignetting, Poisson-Gaussian
 noise after darkening, motion blur; vo_runtime/lowlight.py). --viz (with -o) adds viz.mp4 and viz/*.png overlays.
+--set FIELD=VALUE changes one VOConfig knob for this run (vo_runtime/config.py; e.g. init_wanted_landmarks=100,
+a richer first map for a drone in the dark: docs/vo_takeoff.md); summary.json records what was set.
 {prog} verify ARTEFACT checks an artefact (or a TensorRT engine) against its stored reference outputs.
 Exit codes: 0 done, 2 bad input.
 """
@@ -89,6 +92,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "cpu) or a list such as cuda,cpu; a missing one is an error")
     parser.add_argument("--max-keypoints", type=int, default=2000, help="ORB features per frame (default 2000)")
     parser.add_argument("--max-frames", type=int, help="stop after this many frames")
+    parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                        help="change a VOConfig knob (VALUE as JSON; mapping.FIELD for the mapping's), e.g. "
+                             "init_wanted_landmarks=100; repeatable")
     parser.add_argument("--lowlight", help="dark, onboard, or GAMMA,SIGMA[,GAIN]: darken every frame (see below)")
     parser.add_argument("--viz", action="store_true",
                         help="with -o: viz.mp4 and viz/*.png, each frame (contrast-stretched) with its keypoints, the "
@@ -113,6 +119,7 @@ def _check_options(args: argparse.Namespace) -> None:
         raise VORuntimeError(f"--max-frames must be at least 1, got {args.max_frames}")
     if args.camera < 0:
         raise VORuntimeError(f"--camera must be >= 0, got {args.camera}")
+    args.vo_config, args.config_overrides = config_from_overrides(args.set, mapping_thread=args.mapping_thread)
 
 
 def _progress(items: Iterator, total: int, enabled: bool) -> Iterator:
@@ -167,7 +174,7 @@ def _run(args: argparse.Namespace, claim: OutputClaim | None) -> int:
     extractor = (OrbExtractor(args.max_keypoints) if args.features == "orb"
                  else FeatureExtractor(args.artefact, threads=args.threads, providers=providers))
     _warn_on_squeezed_frames(extractor, height, width)
-    vo = VisualOdometry(extractor, sequence.camera, VOConfig(mapping_thread=args.mapping_thread))
+    vo = VisualOdometry(extractor, sequence.camera, args.vo_config)
     with threadpool_limits(limits=args.blas_threads, user_api="blas"):
         stream = (StreamFrame(_frame_loader(path, lowlight, index), sequence.timestamps[index], path.name)
                   for index, path in enumerate(frames))
@@ -185,7 +192,7 @@ def _run(args: argparse.Namespace, claim: OutputClaim | None) -> int:
     summary: dict[str, Any] = {
         "features": args.features if args.features == "orb" else str(args.artefact),
         "providers": ",".join(extractor.providers),
-        "sequence": str(args.images), "layout": sequence.layout, "lowlight": args.lowlight,
+        "sequence": str(args.images), "layout": sequence.layout, "lowlight": args.lowlight, "config": args.config_overrides,
         "frames": len(vo.results), "states": {s: states.count(s) for s in dict.fromkeys(states)},
         "skipped_frames": len(skipped),
         "median_extract_ms": round(float(np.median([r.extract_ms for r in used])), 2),
