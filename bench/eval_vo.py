@@ -37,12 +37,12 @@ sys.path.insert(0, str(ROOT))
 
 from vo_runtime import FeatureExtractor, OrbExtractor, VisualOdometry, VOConfig  # noqa: E402
 from vo_runtime.artefact import default_artefact  # noqa: E402
+from vo_runtime.config_overrides import config_from_overrides  # noqa: E402
 from vo_runtime.datasets import frame_size, open_sequence  # noqa: E402
 from vo_runtime.errors import VORuntimeError  # noqa: E402
 from vo_runtime.evaluate import evaluate, plot_trajectory, sequence_groundtruth  # noqa: E402
 from vo_runtime.features import KeypointBudget, to_gray_u8  # noqa: E402
 from vo_runtime.lowlight import PRESETS  # noqa: E402
-from vo_runtime.mapping import MappingConfig  # noqa: E402
 from vo_runtime.odometry import INITIALISING, SKIPPED, TRACKED_STATES  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
 
@@ -62,15 +62,7 @@ STARTS = {
 LIGHTS = {"normal": None, "low": PRESETS["dark"], "onboard": PRESETS["onboard"]}
 
 
-def parse_overrides(items: list[str]) -> dict:
-    overrides = {}
-    for item in items:
-        key, _, value = item.partition("=")
-        overrides[key] = json.loads(value)
-    return overrides
-
-
-def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, overrides: dict, artefact: Path,
+def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, config: VOConfig, artefact: Path,
             plot_dir: Path | None, size: tuple[int, int] | None = None, start: int = 0,
             budget: tuple[int, tuple[int, int] | None] | None = None) -> dict:
     sequence = open_sequence(sequence_dir)
@@ -82,9 +74,6 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, overr
     extractor = OrbExtractor(keypoints) if features == "orb" else FeatureExtractor(artefact, threads=1)
     if budget is not None:  # at most N keypoints a frame, spread over a grid (KeypointBudget)
         extractor = KeypointBudget(extractor, *budget)
-    top = {k: v for k, v in overrides.items() if "." not in k}
-    mapping = {k.split(".", 1)[1]: v for k, v in overrides.items() if k.startswith("mapping.")}
-    config = VOConfig(**top, mapping=MappingConfig(**mapping))
     vo = VisualOdometry(extractor, camera, config)
     for index, image in enumerate(read_frames(frames)):
         if size is not None:
@@ -201,7 +190,11 @@ def main() -> int:
     parser.add_argument("-o", "--output", type=Path)
     args = parser.parse_args()
     cv2.setNumThreads(1)
-    overrides = parse_overrides(args.set)
+    try:  # a mistyped --set refused before any run starts (the vo command's own check)
+        config, overrides = config_from_overrides(args.set)
+    except VORuntimeError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
     budget = None
     if args.budget:
         count, _, grid = args.budget.partition(",")
@@ -221,7 +214,7 @@ def main() -> int:
                 starts = (study_starts(name, light, len(sequence)) if args.starts == "study" else
                           [v for v in map(int, args.starts.split(",")) if v == 0 or v < len(sequence) - 20])
                 for keypoints in [int(k) for k in args.keypoints.split(",")]:
-                    jobs += [(args.data / name, features, light, keypoints, overrides, artefact, args.output, size, first,
+                    jobs += [(args.data / name, features, light, keypoints, config, artefact, args.output, size, first,
                               budget) for first in starts]
     if args.output is not None:
         args.output.mkdir(parents=True, exist_ok=True)

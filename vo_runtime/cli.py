@@ -192,7 +192,8 @@ def _run(args: argparse.Namespace, claim: OutputClaim | None) -> int:
     summary: dict[str, Any] = {
         "features": args.features if args.features == "orb" else str(args.artefact),
         "providers": ",".join(extractor.providers),
-        "sequence": str(args.images), "layout": sequence.layout, "lowlight": args.lowlight, "config": args.config_overrides,
+        "sequence": str(args.images), "layout": sequence.layout, "lowlight": args.lowlight,
+        "config": args.config_overrides,
         "frames": len(vo.results), "states": {s: states.count(s) for s in dict.fromkeys(states)},
         "skipped_frames": len(skipped),
         "median_extract_ms": round(float(np.median([r.extract_ms for r in used])), 2),

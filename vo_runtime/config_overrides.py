@@ -61,4 +61,3 @@ def config_from_overrides(items: list[str], **given: Any) -> tuple[VOConfig, dic
     config = replace(config, **top, mapping=replace(config.mapping, **mapping))  # __post_init__ checks ranges
     applied = {**top, **{f"mapping.{k}": v for k, v in mapping.items()}}
     return config, applied
-

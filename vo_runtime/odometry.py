@@ -35,6 +35,7 @@ relative to its reference keyframe, so frames reported earlier follow when bundl
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
@@ -117,8 +118,15 @@ class MonoVO(KeyframeUpkeep):
         self._last_tracked = -1
         self._lost_since = -1                        # first frame of the current loss (-1: not lost)
         self._velocity = np.eye(4)                   # last inter-frame motion (world-to-camera increment)
-        self._speed: float | None = None             # world units per frame, for re-initialisation
-        self._speeds: list[float] = []               # per tracked frame, the latest `speed_frames`
+        # World units per frame of the latest `speed_frames` tracked frames (or the first map's baseline):
+        # the scale of a re-initialisation (`_speed`); empty before any map.
+        self._speeds: deque[float] = deque(maxlen=self.config.speed_frames)
+
+    @property
+    def _speed(self) -> float | None:
+        """Median speed before now (world units per frame); None before the first map. Computed only when a
+        re-initialisation needs it: a failing map's last frames are already shrunk (`VOConfig.speed_frames`)."""
+        return float(np.median(self._speeds)) if self._speeds else None
 
     @property
     def observations(self) -> tuple[np.ndarray, np.ndarray | None] | None:
@@ -260,7 +268,7 @@ class MonoVO(KeyframeUpkeep):
         """Set this frame's pose (held until something better is known) and fill in ``result``."""
         cfg = self.config
         mapped = self.map is not None
-        result.status = LOST if (mapped or self._speed is not None) else INITIALISING
+        result.status = LOST if (mapped or self._speeds) else INITIALISING
         pixels = np.asarray(features.keypoints, np.float64)
         self.last_observations = (pixels, None)
         if len(features) < cfg.min_features:
@@ -351,8 +359,7 @@ class MonoVO(KeyframeUpkeep):
             step = pose @ invert_pose(self._poses_cw[self._last_tracked])
             self._velocity = step if gap == 1 else self._velocity
             travel = float(np.linalg.norm(camera_centre(pose) - camera_centre(self._poses_cw[self._last_tracked]))) / gap
-            self._speeds = (self._speeds + [travel])[-self.config.speed_frames:]
-            self._speed = float(np.median(self._speeds))
+            self._speeds.append(travel)
         else:
             self._velocity = np.eye(4)  # after a relocalisation the motion is unknown
         self._poses_cw[index] = pose
@@ -389,7 +396,7 @@ class MonoVO(KeyframeUpkeep):
 
     def _start_map(self, index: int, outcome, result: VOResult) -> None:
         """A (re)initialisation succeeded: a new map of two keyframes."""
-        reinitialised = self.map is not None or self._speed is not None
+        reinitialised = self.map is not None or bool(self._speeds)
         self.map = LocalMap(outcome.current.descriptors.shape[1])
         self._anchors = {}
         reference, current = outcome.reference, outcome.current
@@ -405,8 +412,8 @@ class MonoVO(KeyframeUpkeep):
         self._lost_since = -1
         self._velocity = per_frame_motion(self._poses_cw[index] @ invert_pose(self._poses_cw[outcome.reference_index]),
                                           index - outcome.reference_index)
-        self._speed = outcome.speed
-        self._speeds = [outcome.speed]
+        self._speeds.clear()
+        self._speeds.append(outcome.speed)
         if reinitialised:
             self._probation.end()
         else:
