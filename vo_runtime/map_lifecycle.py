@@ -1,0 +1,64 @@
+"""`MapLifecycle`: how `MonoVO` starts a map (a two-view initialisation that succeeded) and throws a young one
+away (a first map that failed its probation, `probation.py`).
+
+A base class of `MonoVO` only, over its state (``self.map``, ``self._poses_cw``, ``self._probation``, ...), as
+`KeyframeUpkeep` is: split from odometry.py so that file keeps the frame-by-frame states.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from vo_runtime.config import VOResult
+from vo_runtime.geometry import invert_pose, per_frame_motion
+from vo_runtime.localmap import Keyframe, LocalMap
+from vo_runtime.states import INITIALISING, REINITIALISED, TRACKING
+from vo_runtime.tracking import FrameData
+
+
+class MapLifecycle:
+    def _discard_map(self, index: int, frame: FrameData, result: VOResult) -> None:
+        """The first map failed its probation: forget it as if it had never been built. Its frames go back to
+        ``initialising`` with the reference frame's pose, and the next initialisation measures from this frame."""
+        first = self.map.keyframes[0].frame  # the map's reference frame
+        held = self._poses_cw[first].copy()
+        for number in range(first + 1, index + 1):
+            self._poses_cw[number] = held.copy()
+            if number < len(self.results):
+                earlier = self.results[number]
+                earlier.pose, earlier.status, earlier.tracked_by, earlier.keyframe = invert_pose(held), INITIALISING, None, False
+        median = float(np.median(self._probation.values))
+        self._forget_map()
+        self._initialiser.restart(index, frame)
+        result.status, result.tracked_by = INITIALISING, None
+        result.problem = (f"map discarded: its frame-to-frame rotations disagreed with the frames' own by {median:.2f} "
+                          f"deg (median of {len(self._probation.values)} frames)")
+
+    def _start_map(self, index: int, outcome, result: VOResult) -> None:
+        """A (re)initialisation succeeded: a new map of two keyframes."""
+        reinitialised = self.map is not None or bool(self._speeds)
+        self.map = LocalMap(outcome.current.descriptors.shape[1])
+        self._anchors = {}
+        reference, current = outcome.reference, outcome.current
+        for frame_index, data in ((outcome.reference_index, reference), (index, current)):
+            keyframe = Keyframe(frame_index, self._poses_cw[frame_index].copy(), data.points, data.pixels,
+                                data.descriptors, np.full(len(data.points), -1, np.int64), data.gray)
+            self._anchors[self.map.add_keyframe(keyframe)] = [(frame_index, np.eye(4))]
+        self.map.add_landmarks(outcome.world, [(0, outcome.reference_rows), (1, outcome.current_rows)], outcome.angles)
+        self._set_reference(1)
+        self._previous = (current, self.map.keyframes[1].landmark)
+        self.last_observations = (current.pixels, self.map.keyframes[1].landmark)
+        self._last_tracked = index
+        self._lost_since = -1
+        self._velocity = per_frame_motion(self._poses_cw[index] @ invert_pose(self._poses_cw[outcome.reference_index]),
+                                          index - outcome.reference_index)
+        self._speeds.clear()
+        self._speeds.append(outcome.speed)
+        if reinitialised:
+            self._probation.end()
+        else:
+            self._probation.begin()
+        result.status = REINITIALISED if reinitialised else TRACKING
+        result.tracked_by = "two-view"
+        result.keyframe = True
+        result.num_inliers = outcome.inliers
+        result.num_landmarks = len(outcome.world)
