@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 from vo_runtime.geometry import reprojection_errors, rvec_from_pose
 from vo_runtime.localmap import LocalMap
 from vo_runtime.matching import match_by_projection, match_mutual_nn
-from vo_runtime.pose import ransac_pose, refine_pose
+from vo_runtime.pose import ransac_pose, refine_pose, second_opinion
 
 LOCAL_MAP, WIDE_SEARCH, PREVIOUS_FRAME, RELOCALISATION = "local map", "wide search", "previous frame", "relocalisation"
 
@@ -63,6 +63,12 @@ class TrackingSettings:
     max_points: int
     pose_min_angle: float = 0.0  # degrees; landmarks triangulated from closer rays ...
     pose_min_found: int = 1      # ... and found in fewer frames only join the pose fit when too few others
+    # A refined pose that moved further than check_jump x check_speed (world units) from where the refinement
+    # started and explains fewer than check_share of its matches gets a second opinion (`pose.second_opinion`);
+    # check_speed None: never.
+    check_speed: float | None = None
+    check_jump: float = 0.75
+    check_share: float = 0.6
     seconds: dict = field(default_factory=lambda: {"matching": 0.0, "pose": 0.0})  # time spent, for the bench
 
 
@@ -113,6 +119,9 @@ def _fit_pose(local_map: LocalMap, visible: np.ndarray, pairs: np.ndarray, pose_
     fit = refine_pose(world[use], image[use], pose_cw, threshold, settings.min_inliers)
     if robust and fit is None:
         fit = ransac_pose(world[use], image[use], threshold, settings.min_inliers)
+    elif fit is not None and settings.check_speed is not None:
+        fit = second_opinion(world, image, pose_cw, fit, threshold, settings.min_inliers, settings.check_speed,
+                             settings.check_jump, settings.check_share)
     if fit is None:
         return None
     pose = fit[0]

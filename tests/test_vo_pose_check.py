@@ -1,0 +1,83 @@
+"""The second opinion on a refined pose (`vo_runtime/pose.py` `second_opinion`): PnP RANSAC on every match when
+the refinement jumped away from the prediction and explains few matches, and nothing otherwise."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from vo_runtime.config import VOConfig
+from vo_runtime.errors import VORuntimeError
+from vo_runtime.geometry import camera_centre
+from vo_runtime.pose import refine_pose, second_opinion
+
+FOCAL = 450.0
+THRESHOLD = 3.0 / FOCAL
+
+
+def pose_at(centre, yaw_deg: float) -> np.ndarray:
+    rotation = cv2.Rodrigues(np.array([0.0, np.radians(yaw_deg), 0.0]))[0]
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = rotation, -rotation @ np.asarray(centre, float)
+    return pose
+
+
+def project(world: np.ndarray, pose: np.ndarray, noise_px: float, rng: np.random.Generator) -> np.ndarray:
+    cam = world @ pose[:3, :3].T + pose[:3, 3]
+    return cam[:, :2] / cam[:, 2:3] + rng.normal(0.0, noise_px / FOCAL, (len(world), 2))
+
+
+@pytest.fixture
+def scene():
+    """70 matches of a frame 0.25 units (one frame's travel) from the last: 46 agree with the true pose, 24 with a
+    pose that barely moved (wrong matches that happen to agree, as in the dark EuRoC frame this models)."""
+    rng = np.random.default_rng(0)
+    z = rng.uniform(3.0, 9.0, 70)
+    world = np.c_[rng.uniform(-0.5, 0.5, 70) * z, rng.uniform(-0.3, 0.3, 70) * z, z]
+    truth, wrong = pose_at([0.25, 0.0, 0.0], 1.2), pose_at([0.01, 0.0, 0.0], 2.9)
+    image = np.r_[project(world[:46], truth, 0.5, rng), project(world[46:], wrong, 0.5, rng)]
+    return world, image, truth, wrong
+
+
+def explained(world, image, pose) -> int:
+    cam = world @ pose[:3, :3].T + pose[:3, 3]
+    return int(np.count_nonzero(np.linalg.norm(cam[:, :2] / cam[:, 2:3] - image, axis=1) < THRESHOLD))
+
+
+def test_a_refinement_in_the_wrong_basin_is_replaced_by_the_pose_most_matches_agree_with(scene):
+    world, image, truth, wrong = scene
+    prediction = pose_at([0.25, 0.0, 0.0], 1.0)
+    fit = refine_pose(world[46:], image[46:], wrong, THRESHOLD, 20)  # what the gated refinement slid to
+    assert fit is not None and explained(world, image, fit[0]) < 0.6 * 70
+    checked = second_opinion(world, image, prediction, fit, THRESHOLD, 20, speed=0.25, max_jump=0.75, min_share=0.6)
+    assert checked is not fit
+    assert explained(world, image, checked[0]) >= 45
+    assert np.linalg.norm(camera_centre(checked[0]) - camera_centre(truth)) < 0.05
+
+
+@pytest.mark.parametrize("speed, min_share", [(1.0, 0.6), (0.25, 0.3)])
+def test_a_fit_near_its_start_or_explaining_enough_is_kept_as_it_is(scene, speed, min_share):
+    # A jump of 0.24 is under 0.75 x a speed of 1.0; 24 of 70 explained is above a 0.3 share.
+    world, image, truth, wrong = scene
+    prediction = pose_at([0.25, 0.0, 0.0], 1.0)
+    fit = refine_pose(world[46:], image[46:], wrong, THRESHOLD, 20)
+    assert second_opinion(world, image, prediction, fit, THRESHOLD, 20, speed=speed, max_jump=0.75,
+                          min_share=min_share) is fit
+
+
+def test_no_better_pose_keeps_the_fit(scene):
+    world, _, _, wrong = scene
+    rng = np.random.default_rng(1)
+    image = project(world, wrong, 0.5, rng)
+    image[:40] = rng.uniform(-0.5, 0.5, (40, 2))  # 40 wrong matches, scattered: nothing explains more than 30
+    fit = refine_pose(world[40:], image[40:], wrong, THRESHOLD, 20)
+    checked = second_opinion(world, image, pose_at([0.25, 0.0, 0.0], 1.0), fit, THRESHOLD, 20, speed=0.25,
+                             max_jump=0.75, min_share=0.6)
+    assert checked is fit
+
+
+def test_the_check_settings_are_validated():
+    with pytest.raises(VORuntimeError, match="pose_check"):
+        VOConfig(pose_check_share=1.5)
+    with pytest.raises(VORuntimeError, match="pose_check"):
+        VOConfig(pose_check_jump=0.0)
