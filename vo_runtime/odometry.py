@@ -322,8 +322,8 @@ class MonoVO(MapLifecycle, KeyframeUpkeep):
                                 cfg.wide_search_radius_px, cfg.pnp_threshold_px, cfg.min_pnp_inliers,
                                 cfg.match_max_distance, cfg.match_ratio, cfg.max_local_points,
                                 float(np.degrees(cfg.mapping.pose_min_parallax_px / self._focal)),
-                                cfg.mapping.pose_min_found, self._speed if cfg.pose_check else None,
-                                cfg.pose_check_jump, cfg.pose_check_share)
+                                cfg.mapping.pose_min_found, check_speed=self._speed if cfg.pose_check else None,
+                                check_jump=cfg.pose_check_jump, check_share=cfg.pose_check_share)
 
     def _relocalise(self, frame: FrameData):
         cfg = self.config

@@ -67,8 +67,8 @@ class TrackingSettings:
     # started and explains fewer than check_share of its matches gets a second opinion (`pose.second_opinion`);
     # check_speed None: never.
     check_speed: float | None = None
-    check_jump: float = 0.75
-    check_share: float = 0.6
+    check_jump: float = 1.0
+    check_share: float = 0.5
     seconds: dict = field(default_factory=lambda: {"matching": 0.0, "pose": 0.0})  # time spent, for the bench
 
 
