@@ -2,6 +2,9 @@
 the refinement jumped away from the prediction and explains few matches, and nothing otherwise."""
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -81,3 +84,41 @@ def test_the_check_settings_are_validated():
         VOConfig(pose_check_share=1.5)
     with pytest.raises(VORuntimeError, match="pose_check"):
         VOConfig(pose_check_jump=0.0)
+
+
+@pytest.mark.parametrize("check", [True, False])
+def test_the_dark_mid_flight_start_keeps_its_direction_only_with_the_check(shared_data, check):
+    """The real case (docs/vo_takeoff.md, "Mid-flight, found"): the drone clip from frame 100 in the dark. Over its
+    first 20 tracked frames the travel direction stays within 25 deg of the ground truth's with the check; without
+    it the first tracked frame slides into the wrong basin and the direction is off by 60-90 deg."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/ is a folder of scripts
+    from bench.eval_vo import LIGHTS
+    from vo_runtime import VisualOdometry
+    from vo_runtime.artefact import default_artefact
+    from vo_runtime.datasets import frame_size, open_sequence
+    from vo_runtime.evaluate import sequence_groundtruth
+    from vo_runtime.features import to_gray_u8
+    from vo_runtime.sequence import read_frames
+    from vo_runtime.states import TRACKING
+
+    start, count = 100, 30
+    sequence = open_sequence(shared_data / "euroc_mh05_f000000-000199")
+    truth = sequence_groundtruth(sequence).poses_se3[start:start + count]
+    height, width = frame_size(sequence.camera, sequence.frames)
+    vo = VisualOdometry(default_artefact(width, height), sequence.camera, VOConfig(pose_check=check))
+    for i, image in enumerate(read_frames(sequence.frames[start:start + count])):
+        vo.track(LIGHTS["low"](to_gray_u8(image), seed=start + i), sequence.timestamps[start + i])
+    vo.finish()
+    tracked = [r.index for r in vo.results if r.status == TRACKING]
+    first, last = tracked[0], tracked[min(20, len(tracked) - 1)]
+    estimated = vo.results[last].pose[:3, 3] - vo.results[first].pose[:3, 3]  # camera-to-world poses
+    true = truth[last][:3, 3] - truth[first][:3, 3]
+    # Directions in the first tracked frame's camera, where both trajectories start.
+    estimated = vo.results[first].pose[:3, :3].T @ estimated
+    true = truth[first][:3, :3].T @ true
+    cos = estimated @ true / (np.linalg.norm(estimated) * np.linalg.norm(true))
+    error_deg = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    if check:
+        assert error_deg < 25.0
+    else:
+        assert error_deg > 45.0

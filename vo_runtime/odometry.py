@@ -123,8 +123,8 @@ class MonoVO(MapLifecycle, KeyframeUpkeep):
 
     @property
     def _speed(self) -> float | None:
-        """Median speed before now (world units per frame); None before the first map. Computed only when a
-        re-initialisation needs it: a failing map's last frames are already shrunk (`VOConfig.speed_frames`)."""
+        """Median speed over `VOConfig.speed_frames` (world units per frame), None before the first map; asked for
+        by a re-initialisation and by each frame's pose check (`VOConfig.pose_check`): a median of <= 20 values."""
         return float(np.median(self._speeds)) if self._speeds else None
 
     @property
