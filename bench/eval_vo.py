@@ -15,8 +15,10 @@ ATE over the starts, the least tracked share and the frames lost after initialis
 Every run: the sequence at its own resolution (the artefact resizes to its input; by default the shipped
 artefact for that camera's aspect), onnxruntime, OpenCV and BLAS on one thread, one process per run
 (``--workers`` side by side: run it on an otherwise idle machine, or the FPS mean little). Writes ``table.md``
-(the tables docs/vo.md keeps), ``results.json`` and one trajectory plot per run (start and end marked) into
-``-o``. "Tracked" counts frames with a pose from tracking, relocalisation or re-initialisation, over the frames
+(the tables docs/vo.md keeps), ``results.json``, one trajectory plot per run (start and end marked) and its scored
+frames in TUM format (``trajectories/``, for evo) into ``-o``. When ORB ran the same starts, a second table
+scores each learned run and ORB's again on the frames both scored (bench/vo_shared_frames.py): ORB starts later
+in the dark, so its own ATE covers less of the flight. "Tracked" counts frames with a pose from tracking, relocalisation or re-initialisation, over the frames
 after the first initialisation; "lost" the rest of those. FPS counts extraction and tracking, not reading or
 darkening the frames.
 """
@@ -45,6 +47,8 @@ from vo_runtime.features import KeypointBudget, to_gray_u8  # noqa: E402
 from vo_runtime.lowlight import PRESETS  # noqa: E402
 from vo_runtime.odometry import INITIALISING, SKIPPED, TRACKED_STATES  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
+from vo_runtime.trajectory import write_trajectory  # noqa: E402
+from bench.vo_shared_frames import geometric_mean, scored_results, shared_frames_summary  # noqa: E402
 
 SEQUENCES = ("kitti_odom06_f000000-000050", "kitti_odom07_f000000-000159", "tum_fr2_desk_snippet",
              "euroc_mh05_f000000-000199")
@@ -95,14 +99,18 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, confi
            "first_map_landmarks": results[first].num_landmarks if first < len(results) else None,
            "fps": 1000.0 * len(results) / max(sum(r.extract_ms + r.track_ms for r in results), 1e-9),
            "extract_ms": float(np.median([r.extract_ms for r in results])),
-           "track_ms": float(np.median([r.track_ms for r in results])), "ate": None, "rpe": None}
+           "track_ms": float(np.median([r.track_ms for r in results])), "ate": None, "rpe": None,
+           "_results": results}  # for the shared-frames table; not written to results.json
     row["tracked_pct"] = 100.0 * row["tracked"] / max(row["after_init"], 1)
     try:
         report = evaluate(results, sequence_groundtruth(sequence), sequence.layout, stamps)
         row["ate"], row["rpe"] = report["ate_rmse_m"], report["rpe_rmse_m"]
         if plot_dir is not None:
-            name = f"{sequence_dir.name}{f'_from{start}' if start else ''}_{row['features']}_{light}.png"
-            plot_trajectory(plot_dir / name, report,
+            name = f"{sequence_dir.name}{f'_from{start}' if start else ''}_{row['features']}_{light}"
+            # the scored frames in TUM format, so that anyone can score them again with evo_ape
+            (plot_dir / "trajectories").mkdir(exist_ok=True)
+            write_trajectory(plot_dir / "trajectories" / f"{name}.txt", scored_results(results))
+            plot_trajectory(plot_dir / f"{name}.png", report,
                             f"{SHORT_NAMES.get(sequence_dir.name, sequence_dir.name)} from frame {start} "
                             f"({row['features']}, {light} light)")
     except VORuntimeError as exc:
@@ -121,10 +129,6 @@ def table(rows: list[dict]) -> str:
         lines.append(f"| {r['sequence']} | {feats} | {r['light']} | {r['initialised_at']} | {r['tracked_pct']:.0f} % ({r['tracked']}/"
                      f"{r['after_init']}) | {states} | {ate} | {rpe} | {r['fps']:.0f} | {r['track_ms']:.1f} |")
     return "\n".join(lines)
-
-
-def geometric_mean(values: list[float]) -> float:
-    return float(np.exp(np.mean(np.log(np.maximum(values, 1e-6)))))
 
 
 def summary(rows: list[dict]) -> str:
@@ -157,6 +161,19 @@ def study_starts(name: str, light: str, length: int) -> list[int]:
     """The first frames of the settings study (`STARTS`), or 0 for a sequence it does not list."""
     starts = STARTS["normal" if light == "normal" else "low"].get(name, [0])
     return [v for v in starts if v == 0 or v < length - 20]
+
+
+def _reference(data: Path):
+    """(ground truth, layout, timestamps from ``start``) of a sequence by name, each sequence read once."""
+    opened: dict[str, tuple] = {}
+
+    def reference(name: str, start: int) -> tuple:
+        if name not in opened:
+            sequence = open_sequence(data / name)
+            opened[name] = (sequence_groundtruth(sequence), sequence.layout, list(sequence.timestamps))
+        groundtruth, layout, stamps = opened[name]
+        return groundtruth, layout, stamps[start:]
+    return reference
 
 
 def _run_job(job: tuple) -> dict:
@@ -230,6 +247,11 @@ def main() -> int:
     text = table(rows)
     if len(rows) > len({(r["name"], r["features"], r["light"], r["keypoints"]) for r in rows}):
         text = summary(rows) + ("" if args.summary_only else "\n\n" + text)
+    shared = shared_frames_summary(rows, _reference(args.data), short_names=SHORT_NAMES)
+    if shared:
+        text += "\n\nEach learned run against ORB's run of the same start, both scored on the frames both scored:\n\n" + shared
+    for row in rows:
+        del row["_results"]
     print(f"{len(rows)} runs ({began_all:.0f} s of runs), settings {overrides or 'default'}")
     print(text)
     if args.output is not None:
