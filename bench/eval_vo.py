@@ -10,7 +10,9 @@
 Single runs of 20-200 frame clips move by tens of centimetres with any setting (docs/vo.md), so by default
 (``--starts study``) each sequence runs from several first frames (`STARTS`, the same lists as
 bench/vo_settings.py) and the summary gives per sequence, features and light the geometric mean and the worst
-ATE over the starts, the least tracked share and the frames lost after initialisation.
+ATE over the starts, the least tracked share and the frames lost after initialisation. A darkened run's sensor
+noise is one draw; ``--seeds N`` runs N draws per start (by default six for TUM's one-start snippet,
+`STUDY_SEEDS`), and the summary counts each draw as a run.
 
 Every run: the sequence at its own resolution (the artefact resizes to its input; by default the shipped
 artefact for that camera's aspect), onnxruntime, OpenCV and BLAS on one thread, one process per run
@@ -64,11 +66,15 @@ STARTS = {
 }
 # normal light; "low": the global --lowlight dark preset (2,3,0.3); "onboard": a light riding on the camera
 LIGHTS = {"normal": None, "low": PRESETS["dark"], "onboard": PRESETS["onboard"]}
+# Sensor-noise draws per start of a darkened run. TUM's 23-frame snippet allows one start, and one draw of the
+# noise moved its dark ATE from 0.005 to 0.032 m (12 draws, default artefact): there the study runs six.
+STUDY_SEEDS = {"tum_fr2_desk_snippet": 6}
+NOISE_SEED_STRIDE = 100_000  # draw k darkens frame i with seed start + i + k * stride (k = 0: the single-draw noise)
 
 
 def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, config: VOConfig, artefact: Path,
             plot_dir: Path | None, size: tuple[int, int] | None = None, start: int = 0,
-            budget: tuple[int, tuple[int, int] | None] | None = None) -> dict:
+            budget: tuple[int, tuple[int, int] | None] | None = None, seed: int = 0) -> dict:
     sequence = open_sequence(sequence_dir)
     frames, stamps = sequence.frames[start:], sequence.timestamps[start:]
     camera = sequence.camera
@@ -83,15 +89,16 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, confi
         if size is not None:
             image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
         if LIGHTS[light] is not None:
-            image = LIGHTS[light](to_gray_u8(image), seed=start + index)  # the same noise at any start
+            # the same noise at any start; ``seed`` picks another draw of it
+            image = LIGHTS[light](to_gray_u8(image), seed=start + index + NOISE_SEED_STRIDE * seed)
         vo.track(image, stamps[index])
     vo.finish()  # a keyframe's mapping still on the worker thread (--set mapping_thread=true)
     results = vo.results
     states = [r.status for r in results]
     first = next((i for i, s in enumerate(states) if s not in (INITIALISING, SKIPPED)), len(states))
     after = states[first:]
-    row = {"sequence": sequence_dir.name + (f" from {start}" if start else ""), "name": sequence_dir.name,
-           "start": start, "features": features if features == "orb" else artefact.name,
+    row = {"sequence": sequence_dir.name + (f" from {start}" if start else "") + (f" noise {seed}" if seed else ""),
+           "name": sequence_dir.name, "start": start, "seed": seed, "features": features if features == "orb" else artefact.name,
            "keypoints": keypoints if features == "orb" else None, "light": light, "frames": len(states),
            "initialised_at": first, "tracked": sum(s in TRACKED_STATES for s in after), "after_init": len(after),
            "states": {s: states.count(s) for s in dict.fromkeys(states)},
@@ -106,7 +113,8 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, confi
         report = evaluate(results, sequence_groundtruth(sequence), sequence.layout, stamps)
         row["ate"], row["rpe"] = report["ate_rmse_m"], report["rpe_rmse_m"]
         if plot_dir is not None:
-            name = f"{sequence_dir.name}{f'_from{start}' if start else ''}_{row['features']}_{light}"
+            name = f"{sequence_dir.name}{f'_from{start}' if start else ''}_{row['features']}_{light}" + \
+                (f"_noise{seed}" if seed else "")
             # the scored frames in TUM format, so that anyone can score them again with evo_ape
             (plot_dir / "trajectories").mkdir(exist_ok=True)
             write_trajectory(plot_dir / "trajectories" / f"{name}.txt", scored_results(results))
@@ -135,7 +143,7 @@ def summary(rows: list[dict]) -> str:
     """Per sequence, features and light over the starts: ATE geometric mean and worst, RPE geometric mean,
     the least tracked share, frames lost after initialisation, FPS (median)."""
     lines = ["| sequence | features | light | runs | ATE m (geo. mean) | worst ATE m | RPE m (geo. mean) | "
-             "least tracked after init | lost frames | initialised at (median, worst) | FPS (1 core) | ATE m per start |",
+             "least tracked after init | lost frames | initialised at (median, worst) | FPS (1 core) | ATE m per run |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
@@ -200,6 +208,8 @@ def main() -> int:
     parser.add_argument("--starts", default="study",
                         help="first frames to run each sequence from, e.g. 0,25,50; study (default): the start lists of "
                              "bench/vo_settings.py, per sequence and light")
+    parser.add_argument("--seeds", default="study",
+                        help="noise draws per start of each dark run (N); study (default): STUDY_SEEDS, else 1")
     parser.add_argument("--workers", type=int, default=1, help="runs in parallel, one process and thread each")
     parser.add_argument("--budget", help="N or N,COLUMNSxROWS: keep at most N keypoints a frame (any extractor), "
                         "spread over a grid of cells when given (round-robin by rank in the cell)")
@@ -211,6 +221,9 @@ def main() -> int:
         config, overrides = config_from_overrides(args.set)
     except VORuntimeError as error:
         print(f"error: {error}", file=sys.stderr)
+        return 2
+    if args.seeds != "study" and (not args.seeds.isdigit() or int(args.seeds) < 1):
+        print(f"error: --seeds takes a positive number of noise draws or study, got {args.seeds!r}", file=sys.stderr)
         return 2
     budget = None
     if args.budget:
@@ -230,9 +243,10 @@ def main() -> int:
             for light in args.light.split(","):
                 starts = (study_starts(name, light, len(sequence)) if args.starts == "study" else
                           [v for v in map(int, args.starts.split(",")) if v == 0 or v < len(sequence) - 20])
+                draws = 1 if light == "normal" else STUDY_SEEDS.get(name, 1) if args.seeds == "study" else int(args.seeds)
                 for keypoints in [int(k) for k in args.keypoints.split(",")]:
                     jobs += [(args.data / name, features, light, keypoints, config, artefact, args.output, size, first,
-                              budget) for first in starts]
+                              budget, seed) for first in starts for seed in range(draws)]
     if args.output is not None:
         args.output.mkdir(parents=True, exist_ok=True)
     if args.workers > 1:

@@ -14,6 +14,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from toolkit.evaluation.intervals import BootstrapSettings, pooled_mean_interval, resample_weights
 from vo_runtime.errors import VORuntimeError
 from vo_runtime.evaluate import evaluate
 from vo_runtime.odometry import INITIALISING, SKIPPED, VOResult
@@ -51,15 +52,29 @@ def geometric_mean(values: list[float]) -> float:
     return float(np.exp(np.mean(np.log(np.maximum(values, 1e-6)))))
 
 
+def ratio_interval(pairs: list[tuple[int, float, float]], level: float = 0.95) -> tuple[float, float, float]:
+    """Ratio of the geometric means of paired ATEs (start, this, peer), with a bootstrap interval that resamples
+    starts: the noise draws of one start share its frames, so they are not independent runs. With a single start
+    (TUM's snippet) the draws are resampled instead: the only spread there is to see."""
+    starts = sorted({start for start, _, _ in pairs})
+    logs = [[np.log(max(a, 1e-6) / max(b, 1e-6)) for s, a, b in pairs if s == start] for start in starts]
+    if len(starts) == 1:
+        logs = [[value] for value in logs[0]]
+    low, high = pooled_mean_interval(logs, resample_weights(len(logs), BootstrapSettings(level=level)), level)
+    return float(np.exp(np.mean(np.concatenate(logs)))), float(np.exp(low)), float(np.exp(high))
+
+
 def shared_frames_summary(rows: list[dict], reference: Callable[[str, int], tuple[Any, str, list[float]]],
                           peer: str = "orb", short_names: dict[str, str] | None = None) -> str:
-    """Markdown table: for every sequence, light and feature, its runs against ``peer``'s runs of the same start,
+    """Markdown table: for every sequence, light and feature, its runs against ``peer``'s runs of the same start
+    and noise draw,
     scored on their shared frames (`shared_frame_ates`). ``rows`` are eval_vo rows holding their ``_results``;
     ``reference(name, start)`` gives (ground truth, layout, timestamps from that start). "" when no pairs."""
-    peers = {(r["name"], r["light"], r["start"]): r for r in rows if r["features"] == peer and r.get("_results")}
+    peers = {(r["name"], r["light"], r["start"], r.get("seed", 0)): r for r in rows
+             if r["features"] == peer and r.get("_results")}
     groups: dict[tuple, list[tuple]] = {}
     for row in rows:
-        other = peers.get((row["name"], row["light"], row["start"]))
+        other = peers.get((row["name"], row["light"], row["start"], row.get("seed", 0)))
         if row["features"] == peer or other is None or not row.get("_results"):
             continue
         try:
@@ -70,22 +85,30 @@ def shared_frames_summary(rows: list[dict], reference: Callable[[str, int], tupl
         groups.setdefault((row["name"], row["features"], row["light"]), []).append((row, other, scored))
     if not groups:
         return ""
-    lines = [f"| sequence | features | light | starts compared | shared frames (median) | ATE m on shared frames "
-             f"(geo. mean) | {peer}'s on the same frames | ratio | own-frames ratio | frames scored (this / {peer}) |",
+    lines = [f"| sequence | features | light | runs compared | shared frames (median) | ATE m on shared frames "
+             f"(geo. mean) | {peer}'s on the same frames | ratio [95 % interval over starts] | own-frames ratio [95 %] "
+             f"| frames scored (this / {peer}) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for (name, feats, light), pairs in groups.items():
         compared = [(row, other, s) for row, other, s in pairs if s is not None]
-        own_pairs = [(row["ate"], other["ate"]) for row, other, _ in compared
+        own_pairs = [(row["start"], row["ate"], other["ate"]) for row, other, _ in compared
                      if row["ate"] is not None and other["ate"] is not None]
         scored_this = sum(len(scored_frames(row["_results"])) for row, _, _ in pairs)
         scored_peer = sum(len(scored_frames(other["_results"])) for _, other, _ in pairs)
         if compared:
             this, that = geometric_mean([s[0] for *_, s in compared]), geometric_mean([s[1] for *_, s in compared])
-            own = geometric_mean([a for a, _ in own_pairs]) / geometric_mean([b for _, b in own_pairs])
-            cells = (f"{int(np.median([s[2] for *_, s in compared]))} | {this:.4f} | {that:.4f} | {this / that:.2f}x "
-                     f"| {own:.2f}x")  # own: the same starts' ATEs, each on its own frames
+            shared = _ratio_cell([(row["start"], s[0], s[1]) for row, _, s in compared])
+            own = _ratio_cell(own_pairs)  # the same runs' ATEs, each on its own frames
+            cells = f"{int(np.median([s[2] for *_, s in compared]))} | {this:.4f} | {that:.4f} | {shared} | {own}"
         else:
             cells = "- | - | - | - | -"
         lines.append(f"| {(short_names or {}).get(name, name)} | {feats} | {light} | {len(compared)} of {len(pairs)} | {cells} | "
                      f"{scored_this} / {scored_peer} |")
     return "\n".join(lines)
+
+
+def _ratio_cell(pairs: list[tuple[int, float, float]]) -> str:
+    if not pairs:
+        return "-"
+    ratio, low, high = ratio_interval(pairs)
+    return f"{ratio:.2f}x [{low:.2f}, {high:.2f}]"

@@ -10,7 +10,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.vo_shared_frames import shared_frame_ates, shared_frames_summary  # noqa: E402
+from bench.vo_shared_frames import ratio_interval, shared_frame_ates, shared_frames_summary  # noqa: E402
 from vo_runtime.config import VOResult  # noqa: E402
 from vo_runtime.odometry import INITIALISING  # noqa: E402
 
@@ -80,3 +80,17 @@ def test_the_summary_pairs_each_run_with_the_peer_of_the_same_start():
     assert float(cells[5]) == pytest.approx(0.05, abs=0.005) and float(cells[6]) < 1e-4  # the noisy run against exact
     assert cells[9] == f"{2 * (FRAMES - 2)} / {(FRAMES - 30) + 3}"  # frames scored by each side, pairs of 2 starts
     assert shared_frames_summary([rows[0], rows[4]], lambda n, s: (TRUTH, "tum", STAMPS)) == ""
+
+
+def test_the_ratio_interval_resamples_starts_not_noise_draws():
+    # Every run half its peer's ATE: 0.5x, no spread.
+    assert ratio_interval([(0, 0.01, 0.02), (10, 0.03, 0.06)]) == pytest.approx((0.5, 0.5, 0.5))
+    # Three noise draws of start 0 at 0.5x, one run of start 10 at 2x: the ratio is over the four runs
+    # (2 ** -0.5), but a resample draws starts, so a quarter of them hold start 0 alone (0.5x) and a quarter
+    # start 10 alone (2x): the 95 % interval spans both, as three correlated draws are not three starts.
+    ratio, low, high = ratio_interval([(0, 0.01, 0.02), (0, 0.02, 0.04), (0, 0.005, 0.01), (10, 0.02, 0.01)])
+    assert ratio == pytest.approx(2 ** -0.5)
+    assert (low, high) == pytest.approx((0.5, 2.0))
+    # One start (TUM's snippet): its draws are the units, the only spread there is.
+    ratio, low, high = ratio_interval([(0, 0.01, 0.02), (0, 0.02, 0.01)])
+    assert ratio == pytest.approx(1.0) and (low, high) == pytest.approx((0.5, 2.0))
