@@ -67,9 +67,9 @@ def ratio_interval(pairs: list[tuple[int, float, float]], level: float = 0.95) -
 def shared_frames_summary(rows: list[dict], reference: Callable[[str, int], tuple[Any, str, list[float]]],
                           peer: str = "orb", short_names: dict[str, str] | None = None) -> str:
     """Markdown table: for every sequence, light and feature, its runs against ``peer``'s runs of the same start
-    and noise draw,
-    scored on their shared frames (`shared_frame_ates`). ``rows`` are eval_vo rows holding their ``_results``;
-    ``reference(name, start)`` gives (ground truth, layout, timestamps from that start). "" when no pairs."""
+    and noise draw, scored on their shared frames (`shared_frame_ates`). ``rows`` are eval_vo rows holding their
+    ``_results``; ``reference(name, start)`` gives (ground truth, layout, timestamps from that start). "" when
+    no run has a peer."""
     peers = {(r["name"], r["light"], r["start"], r.get("seed", 0)): r for r in rows
              if r["features"] == peer and r.get("_results")}
     groups: dict[tuple, list[tuple]] = {}
@@ -102,7 +102,8 @@ def shared_frames_summary(rows: list[dict], reference: Callable[[str, int], tupl
             cells = f"{int(np.median([s[2] for *_, s in compared]))} | {this:.4f} | {that:.4f} | {shared} | {own}"
         else:
             cells = "- | - | - | - | -"
-        lines.append(f"| {(short_names or {}).get(name, name)} | {feats} | {light} | {len(compared)} of {len(pairs)} | {cells} | "
+        label = (short_names or {}).get(name, name)
+        lines.append(f"| {label} | {feats} | {light} | {len(compared)} of {len(pairs)} | {cells} | "
                      f"{scored_this} / {scored_peer} |")
     return "\n".join(lines)
 
