@@ -20,9 +20,9 @@ artefact for that camera's aspect), onnxruntime, OpenCV and BLAS on one thread, 
 (the tables docs/vo.md keeps), ``results.json``, one trajectory plot per run (start and end marked) and its scored
 frames in TUM format (``trajectories/``, for evo) into ``-o``. When ORB ran the same starts, a second table
 scores each learned run and ORB's again on the frames both scored (bench/vo_shared_frames.py): ORB starts later
-in the dark, so its own ATE covers less of the flight. "Tracked" counts frames with a pose from tracking, relocalisation or re-initialisation, over the frames
-after the first initialisation; "lost" the rest of those. FPS counts extraction and tracking, not reading or
-darkening the frames.
+in the dark, so its own ATE covers less of the flight. "Tracked" counts frames with a pose from tracking,
+relocalisation or re-initialisation, over the frames after the first initialisation; "lost" the rest of those.
+FPS counts extraction and tracking, not reading or darkening the frames.
 """
 from __future__ import annotations
 
@@ -98,7 +98,8 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, confi
     first = next((i for i, s in enumerate(states) if s not in (INITIALISING, SKIPPED)), len(states))
     after = states[first:]
     row = {"sequence": sequence_dir.name + (f" from {start}" if start else "") + (f" noise {seed}" if seed else ""),
-           "name": sequence_dir.name, "start": start, "seed": seed, "features": features if features == "orb" else artefact.name,
+           "name": sequence_dir.name, "start": start, "seed": seed,
+           "features": features if features == "orb" else artefact.name,
            "keypoints": keypoints if features == "orb" else None, "light": light, "frames": len(states),
            "initialised_at": first, "tracked": sum(s in TRACKED_STATES for s in after), "after_init": len(after),
            "states": {s: states.count(s) for s in dict.fromkeys(states)},
@@ -243,7 +244,8 @@ def main() -> int:
             for light in args.light.split(","):
                 starts = (study_starts(name, light, len(sequence)) if args.starts == "study" else
                           [v for v in map(int, args.starts.split(",")) if v == 0 or v < len(sequence) - 20])
-                draws = 1 if light == "normal" else STUDY_SEEDS.get(name, 1) if args.seeds == "study" else int(args.seeds)
+                draws = (1 if light == "normal" else STUDY_SEEDS.get(name, 1) if args.seeds == "study"
+                         else int(args.seeds))
                 for keypoints in [int(k) for k in args.keypoints.split(",")]:
                     jobs += [(args.data / name, features, light, keypoints, config, artefact, args.output, size, first,
                               budget, seed) for first in starts for seed in range(draws)]
@@ -263,7 +265,8 @@ def main() -> int:
         text = summary(rows) + ("" if args.summary_only else "\n\n" + text)
     shared = shared_frames_summary(rows, _reference(args.data), short_names=SHORT_NAMES)
     if shared:
-        text += "\n\nEach learned run against ORB's run of the same start, both scored on the frames both scored:\n\n" + shared
+        text += ("\n\nEach learned run against ORB's run of the same start, both scored on the frames both scored:"
+                 "\n\n" + shared)
     for row in rows:
         del row["_results"]
     print(f"{len(rows)} runs ({began_all:.0f} s of runs), settings {overrides or 'default'}")
