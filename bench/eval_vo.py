@@ -44,13 +44,13 @@ from vo_runtime.artefact import default_artefact  # noqa: E402
 from vo_runtime.config_overrides import config_from_overrides  # noqa: E402
 from vo_runtime.datasets import frame_size, open_sequence  # noqa: E402
 from vo_runtime.errors import VORuntimeError  # noqa: E402
-from vo_runtime.evaluate import evaluate, plot_trajectory, sequence_groundtruth  # noqa: E402
+from vo_runtime.evaluate import evaluate, plot_trajectory, scored_results, sequence_groundtruth  # noqa: E402
 from vo_runtime.features import KeypointBudget, to_gray_u8  # noqa: E402
 from vo_runtime.lowlight import PRESETS  # noqa: E402
 from vo_runtime.odometry import INITIALISING, SKIPPED, TRACKED_STATES  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
 from vo_runtime.trajectory import write_trajectory  # noqa: E402
-from bench.vo_shared_frames import geometric_mean, scored_results, shared_frames_summary  # noqa: E402
+from bench.vo_shared_frames import geometric_mean, shared_frames_summary  # noqa: E402
 
 SEQUENCES = ("kitti_odom06_f000000-000050", "kitti_odom07_f000000-000159", "tum_fr2_desk_snippet",
              "euroc_mh05_f000000-000199")

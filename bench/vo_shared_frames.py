@@ -16,15 +16,10 @@ import numpy as np
 
 from toolkit.evaluation.intervals import BootstrapSettings, pooled_mean_interval, resample_weights
 from vo_runtime.errors import VORuntimeError
-from vo_runtime.evaluate import evaluate
-from vo_runtime.odometry import INITIALISING, SKIPPED, VOResult
+from vo_runtime.evaluate import evaluate, scored_results
+from vo_runtime.odometry import VOResult
 
 MIN_SHARED_FRAMES = 10  # fewer and a Sim(3) alignment fits nearly anything: the pair is not compared
-
-
-def scored_results(results: list[VOResult]) -> list[VOResult]:
-    """The frames `evaluate` scores: every frame past the first initialisation (lost ones hold a pose)."""
-    return [r for r in results if r.status not in (INITIALISING, SKIPPED)]
 
 
 def scored_frames(results: list[VOResult]) -> set[int]:

@@ -103,6 +103,11 @@ def _kitti_rows(path: Path) -> np.ndarray:
     return rows
 
 
+def scored_results(results: Seq[VOResult]) -> list[VOResult]:
+    """The frames `evaluate` scores: every frame past the first initialisation (lost ones hold a pose)."""
+    return [r for r in results if r.status not in (INITIALISING, SKIPPED)]
+
+
 def evaluate(results: Seq[VOResult], groundtruth: Any, layout: str, timestamps: Seq[float]) -> dict[str, Any]:
     """ATE RMSE and RPE RMSE (1-frame translation, metres) of the frames past initialisation.
 
@@ -115,7 +120,7 @@ def evaluate(results: Seq[VOResult], groundtruth: Any, layout: str, timestamps: 
     from evo.core import metrics, sync
     from evo.core.trajectory import PoseTrajectory3D
 
-    used = [r for r in results if r.status not in (INITIALISING, SKIPPED)]
+    used = scored_results(results)
     if len(used) < 3:
         raise VORuntimeError(f"only {len(used)} frames past initialisation: nothing to evaluate")
     stamps = np.array([timestamps[r.index] for r in used], float)
