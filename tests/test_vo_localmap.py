@@ -164,3 +164,27 @@ def test_dead_landmarks_leave_their_keyframes():
     assert set(local_map.landmarks_of([0, 1]).tolist()) == set(range(50)) - {3, 4}
     local_map.remove_observations(np.array([5]), np.array([0]))  # one view left: it cannot be triangulated
     assert not local_map.alive[5] and 5 not in local_map.keyframes[1].landmark
+
+
+def test_neighbour_keyframes_gain_the_observations_tracking_missed():
+    from vo_runtime.mapping import MappingConfig, observe_in_neighbours
+
+    world, desc = scene(200)
+    poses = [pose_at(0.0, (0, 0, 0)), pose_at(0.02, (0.4, 0, 0)), pose_at(0.04, (0.8, 0, 0))]
+    local_map = map_with_keyframes(world, desc, poses)
+    middle = local_map.keyframes[1]
+    rows = np.array([local_map.observations[i][1] for i in range(60)])
+    local_map.remove_observations(np.arange(60), np.ones(60, np.int64))  # keyframe 1 never matched 0-59
+    assert all(local_map.alive[:60]) and not np.isin(np.arange(60), middle.landmark).any()
+    rng = np.random.default_rng(1)
+    middle.descriptors[rows[40:50]] = unit(rng.normal(size=(10, desc.shape[1])))  # 40-49: another look
+    middle.points[rows[50:60]] += 20.0 / FOCAL  # 50-59: 28 px from where the map projects them
+
+    off = MappingConfig(neighbour_keyframes=0)
+    assert observe_in_neighbours(local_map, 2, off, FOCAL, 0.9, 0.9) == 0 and middle.landmark[rows].max() < 0
+    added = observe_in_neighbours(local_map, 2, MappingConfig(neighbour_keyframes=2, neighbour_radius_px=3.0),
+                                  FOCAL, 0.9, 0.9)
+    assert added == 40
+    assert np.array_equal(middle.landmark[rows[:40]], np.arange(40))  # each at its own keypoint
+    assert (middle.landmark[rows[40:]] < 0).all()
+    assert all(list(local_map.observations[i]) == [0, 1, 2] for i in range(40))  # kept in keyframe order

@@ -352,3 +352,23 @@ def test_a_failing_mapping_job_is_raised_on_the_next_frame():
         background.wait()
     assert background.wait() == 0.0  # nothing pending any more
     background.close()
+
+
+def test_searching_neighbour_keyframes_adds_views_and_keeps_the_track():
+    # `mapping.neighbour_keyframes`: landmarks the tracking did not match in older keyframes become observations.
+    from dataclasses import replace
+
+    poses = straight_then_turn(60)
+    views = {}
+    for neighbours in (0, 5):
+        config = VOConfig()
+        config = replace(config, mapping=replace(config.mapping, neighbour_keyframes=neighbours))
+        vo = run(SyntheticExtractor(poses, noise_px=0.5, seed=3), 60, config)
+        first = tracked(vo)[0]
+        assert [r.status for r in vo.results[first:]].count(TRACKING) == 60 - first
+        rmse, _ = ate([r.pose for r in vo.results[first:]], poses[first:])
+        assert rmse < 0.02 * 0.3 * (60 - first)
+        alive = np.flatnonzero(vo.map.alive[: vo.map.size])
+        views[neighbours] = float(vo.map.observation_counts(alive).mean())
+        assert all(list(vo.map.observations[i]) == sorted(vo.map.observations[i]) for i in alive.tolist())
+    assert views[5] > 1.05 * views[0], views  # 7.4 -> 8.1 views a landmark when written

@@ -13,7 +13,8 @@ import numpy as np
 from vo_runtime.config import VOResult
 from vo_runtime.geometry import invert_pose
 from vo_runtime.localmap import Keyframe
-from vo_runtime.mapping import cull_landmarks, local_bundle_adjustment, refresh_landmarks, triangulate_new_landmarks
+from vo_runtime.mapping import (cull_landmarks, local_bundle_adjustment, observe_in_neighbours, refresh_landmarks,
+                                triangulate_new_landmarks)
 from vo_runtime.refine import align_rows
 from vo_runtime.tracking import FrameData
 
@@ -56,6 +57,8 @@ class KeyframeUpkeep:
         refresh_landmarks(self.map, number, mapping, focal)
         triangulate_new_landmarks(self.map, number, mapping, focal, cfg.match_max_distance, cfg.match_ratio,
                                   self._align if self._aligner is not None else None, self._detection_scale)
+        observe_in_neighbours(self.map, number, mapping, focal, cfg.match_max_distance, cfg.match_ratio,
+                              self._align if self._aligner is not None else None)
         for moved in local_bundle_adjustment(self.map, number, mapping, focal):
             self._follow_keyframe(moved)
         cull_landmarks(self.map, number, mapping)
