@@ -279,6 +279,9 @@ def test_config_is_validated():
         VOConfig(initial_baseline=0)
     with pytest.raises(VORuntimeError):
         VOConfig(speed_frames=0)
+    from vo_runtime.mapping import MappingConfig
+    with pytest.raises(VORuntimeError, match="neighbour_radius_px"):
+        VOConfig(mapping=MappingConfig(neighbour_keyframes=5, neighbour_radius_px=0))
 
 
 def test_result_fields():

@@ -3,6 +3,8 @@
 - New landmarks: the new keyframe's keypoints without a landmark are matched to those of its best covisible
   keyframes (descriptor mutual nearest neighbours near the epipolar line, since the relative pose is known)
   and triangulated when the rays are far enough apart and both reprojections are close.
+- Optionally (`neighbour_keyframes`), the new keyframe's landmarks are looked for in covisible keyframes that
+  never matched them, around their projections, and found ones become observations.
 - Local bundle adjustment over keyframes only: the new keyframe and its covisible ones are free, other
   keyframes that see their landmarks are fixed (at least two, so the adjustment cannot rescale the map);
   points and iterations are capped so one keyframe costs a bounded time.
@@ -70,9 +72,9 @@ class MappingConfig:
     # The new keyframe's landmarks projected into this many covisible keyframes that did not observe them, and
     # matched there (descriptor nearest to the projection within neighbour_radius_px, as ORB-SLAM's search in
     # neighbours adds observations): more views per landmark for the bundle adjustment. Off: 5 keyframes helped
-    # the onboard light on 18 EuRoC starts (0.015 -> 0.013 m; the take-off from 0 0.132 -> 0.037) and KITTI 06
-    # in every light, but cost KITTI 07 in the dark and onboard (0.230 / 0.211 -> 0.274 / 0.226 m, frames lost)
-    # in every variant tried (docs/vo_takeoff.md).
+    # 18 EuRoC starts in normal light and onboard (0.0077 / 0.0151 -> 0.0065 / 0.0129 m; the onboard take-off from 0
+    # 0.132 -> 0.037) and KITTI 06 in every light, but cost KITTI 07 in the dark and onboard (0.230 / 0.211 ->
+    # 0.274 / 0.226 m, frames lost in its sharp turn) in every variant tried (docs/vo_takeoff.md).
     neighbour_keyframes: int = 0
     neighbour_radius_px: float = 3.0
 
