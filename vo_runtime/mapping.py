@@ -73,8 +73,8 @@ class MappingConfig:
     # matched there (descriptor nearest to the projection within neighbour_radius_px, as ORB-SLAM's search in
     # neighbours adds observations): more views per landmark for the bundle adjustment. Off: 5 keyframes helped
     # 18 EuRoC starts in normal light and onboard (0.0077 / 0.0151 -> 0.0065 / 0.0129 m; the onboard take-off from 0
-    # 0.132 -> 0.037) and KITTI 06 in every light, but cost KITTI 07 in the dark and onboard (0.230 / 0.211 ->
-    # 0.274 / 0.226 m, frames lost in its sharp turn) in every variant tried (docs/vo_takeoff.md).
+    # 0.132 -> 0.037) and KITTI 06 in every light, but cost KITTI 07 in the dark in every variant tried (three
+    # noise draws: 0.274 -> 0.346 m, 32 frames lost in its sharp turn; onboard level; docs/vo_takeoff.md).
     neighbour_keyframes: int = 0
     neighbour_radius_px: float = 3.0
 
