@@ -281,7 +281,9 @@ def test_config_is_validated():
         VOConfig(speed_frames=0)
     from vo_runtime.mapping import MappingConfig
     with pytest.raises(VORuntimeError, match="neighbour_radius_px"):
-        VOConfig(mapping=MappingConfig(neighbour_keyframes=5, neighbour_radius_px=0))
+        MappingConfig(neighbour_keyframes=5, neighbour_radius_px=0)
+    with pytest.raises(VORuntimeError, match="neighbour_keyframes"):
+        VOConfig(mapping=MappingConfig(neighbour_keyframes=-1))
 
 
 def test_result_fields():

@@ -115,8 +115,6 @@ class VOConfig:
             raise VORuntimeError("pose_check_jump must be > 0 and pose_check_share in (0, 1]")
         if not 0 < self.search_radius_px <= self.wide_search_radius_px:
             raise VORuntimeError("search radii must be positive, the wide one no smaller")
-        if self.mapping.neighbour_keyframes < 0 or self.mapping.neighbour_radius_px <= 0:
-            raise VORuntimeError("mapping.neighbour_keyframes must be >= 0 and mapping.neighbour_radius_px > 0")
 
 
 @dataclass

@@ -84,6 +84,17 @@ class LocalMap:
         self._update_descriptors(ids)
         return ids
 
+    def add_observations(self, number: int, landmarks: np.ndarray, rows: np.ndarray) -> None:
+        """Keyframe ``number``'s keypoints ``rows`` observe ``landmarks`` (found after the keyframe was made);
+        each landmark's observations stay in keyframe order, so its first is still its oldest view. The
+        representative descriptors are left as they are (they come from the latest views)."""
+        keyframe = self.keyframes[number]
+        keyframe.landmark[rows] = landmarks
+        for landmark, row in zip(np.asarray(landmarks).tolist(), np.asarray(rows).tolist()):
+            seen = self.observations[landmark]
+            seen[number] = row
+            self.observations[landmark] = dict(sorted(seen.items()))
+
     def remove_observations(self, landmarks: np.ndarray, keyframes: np.ndarray) -> None:
         """Drop the observation of each landmark in the matching keyframe; a landmark left with fewer than
         two observations cannot be triangulated and dies."""

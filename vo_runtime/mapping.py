@@ -18,10 +18,12 @@ from typing import Callable
 
 import numpy as np
 
+from vo_runtime.errors import VORuntimeError
 from vo_runtime.geometry import ray_angles, triangulate
 from vo_runtime.localmap import LocalMap
 from vo_runtime.matching import match_by_projection, match_epipolar
 from vo_runtime.schur import schur_bundle_adjust
+from vo_runtime.tracking import in_view
 
 
 @dataclass
@@ -77,6 +79,10 @@ class MappingConfig:
     # noise draws: 0.274 -> 0.346 m, 32 frames lost in its sharp turn; onboard level; docs/vo_takeoff.md).
     neighbour_keyframes: int = 0
     neighbour_radius_px: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.neighbour_keyframes < 0 or self.neighbour_radius_px <= 0:
+            raise VORuntimeError("mapping.neighbour_keyframes must be >= 0 and mapping.neighbour_radius_px > 0")
 
 
 def min_angle(config: MappingConfig, focal: float) -> float:
@@ -149,22 +155,18 @@ def observe_in_neighbours(local_map: LocalMap, number: int, config: MappingConfi
         free = np.flatnonzero(other.landmark < 0)
         if len(unseen) == 0 or len(free) == 0:
             continue
-        cam = local_map.positions[unseen] @ other.pose_cw[:3, :3].T + other.pose_cw[:3, 3]
-        front = cam[:, 2] > 0
-        unseen, cam = unseen[front], cam[front]
-        pairs = match_by_projection(cam[:, :2] / cam[:, 2:3], local_map.descriptors[unseen], other.points[free],
-                                    other.descriptors[free], config.neighbour_radius_px / focal, max_distance, ratio)
+        radius = config.neighbour_radius_px / focal
+        low, high = other.points[free].min(axis=0) - radius, other.points[free].max(axis=0) + radius
+        unseen, projected = in_view(local_map, unseen, other.pose_cw, (low[0], high[0], low[1], high[1]))
+        pairs = match_by_projection(projected, local_map.descriptors[unseen], other.points[free],
+                                    other.descriptors[free], radius, max_distance, ratio)
         if len(pairs) == 0:
             continue
         found, rows = unseen[pairs[:, 0]], free[pairs[:, 1]]
         if align is not None:
             new_rows = np.array([local_map.observations[i][number] for i in found.tolist()], np.int64)
             align(new, other, new_rows, rows)
-        other.landmark[rows] = found
-        for landmark, row in zip(found.tolist(), rows.tolist()):
-            seen = local_map.observations[landmark]
-            seen[other_number] = row
-            local_map.observations[landmark] = dict(sorted(seen.items()))  # keyframe order: first is oldest
+        local_map.add_observations(other_number, found, rows)
         added += len(found)
     return added
 
