@@ -12,7 +12,9 @@ Single runs of 20-200 frame clips move by tens of centimetres with any setting (
 bench/vo_settings.py) and the summary gives per sequence, features and light the geometric mean and the worst
 ATE over the starts, the least tracked share and the frames lost after initialisation. A darkened run's sensor
 noise is one draw; ``--seeds N`` runs N draws per start (by default six for TUM's one-start snippet,
-`STUDY_SEEDS`), and the summary counts each draw as a run.
+`STUDY_SEEDS`), and the summary counts each draw as a run. Normal light has no noise to draw, so ``--light grain``
+(normal light plus one grey level of sensor noise, at normal light's starts) with ``--seeds N`` shows how much of
+a normal-light row is the chaos of single runs (docs/vo_euroc.md, "More starts and noise draws").
 
 Every run: the sequence at its own resolution (the artefact resizes to its input; by default the shipped
 artefact for that camera's aspect), onnxruntime, OpenCV and BLAS on one thread, one process per run
@@ -65,7 +67,19 @@ STARTS = {
             "tum_fr2_desk_snippet": [0], "euroc_mh05_f000000-000199": range(0, 101, 20)},
 }
 # normal light; "low": the global --lowlight dark preset (2,3,0.3); "onboard": a light riding on the camera
-LIGHTS = {"normal": None, "low": PRESETS["dark"], "onboard": PRESETS["onboard"]}
+# "grain": normal light plus one grey level of sensor noise. Normal light is deterministic, so each start is one
+# run, and a KITTI 07 run is chaotic enough that this much noise moved a start from 0.165 to 0.32-0.35 m: draws
+# of it (--seeds) tell the weights' or settings' effect on a normal-light row from the chaos of single runs.
+GRAIN_SIGMA = 1.0
+
+
+def sensor_grain(gray: np.ndarray, seed: int = 0) -> np.ndarray:
+    """HxW uint8 -> the same frame plus Gaussian noise of GRAIN_SIGMA grey levels (seeded), rounded and clipped."""
+    noise = np.random.default_rng(seed).normal(0.0, GRAIN_SIGMA, gray.shape)
+    return np.clip(np.rint(gray + noise), 0, 255).astype(np.uint8)
+
+
+LIGHTS = {"normal": None, "low": PRESETS["dark"], "onboard": PRESETS["onboard"], "grain": sensor_grain}
 # Sensor-noise draws per start of a darkened run. TUM's 23-frame snippet allows one start, and one draw of the
 # noise moved its dark ATE from 0.005 to 0.032 m (12 draws, default artefact): there the study runs six.
 STUDY_SEEDS = {"tum_fr2_desk_snippet": 6}
@@ -168,7 +182,7 @@ def summary(rows: list[dict]) -> str:
 
 def study_starts(name: str, light: str, length: int) -> list[int]:
     """The first frames of the settings study (`STARTS`), or 0 for a sequence it does not list."""
-    starts = STARTS["normal" if light == "normal" else "low"].get(name, [0])
+    starts = STARTS["normal" if light in ("normal", "grain") else "low"].get(name, [0])
     return [v for v in starts if v == 0 or v < length - 20]
 
 
@@ -202,7 +216,8 @@ def main() -> int:
     parser.add_argument("--artefact", type=Path, default=None,
                         help="default: the shipped artefact for each sequence's camera (default_artefact)")
     parser.add_argument("--light", default="normal,low,onboard",
-                        help="normal, low (--lowlight dark: 2,3,0.3) and/or onboard (--lowlight onboard)")
+                        help="normal, low (--lowlight dark: 2,3,0.3), onboard (--lowlight onboard) and/or grain "
+                             "(normal light plus one grey level of sensor noise, at normal light's starts)")
     parser.add_argument("--keypoints", default="2000", help="ORB features per frame; a list for a sensitivity table")
     parser.add_argument("--set", action="append", default=[], help="VOConfig field=value (JSON value; mapping.FIELD for MappingConfig), repeatable")
     parser.add_argument("--size", help="WIDTHxHEIGHT: resize every frame first (e.g. 320x240); default: as stored")
@@ -210,7 +225,7 @@ def main() -> int:
                         help="first frames to run each sequence from, e.g. 0,25,50; study (default): the start lists of "
                              "bench/vo_settings.py, per sequence and light")
     parser.add_argument("--seeds", default="study",
-                        help="noise draws per start of each dark run (N); study (default): STUDY_SEEDS, else 1")
+                        help="noise draws per start of each dark or grain run (N); study (default): STUDY_SEEDS, else 1")
     parser.add_argument("--workers", type=int, default=1, help="runs in parallel, one process and thread each")
     parser.add_argument("--budget", help="N or N,COLUMNSxROWS: keep at most N keypoints a frame (any extractor), "
                         "spread over a grid of cells when given (round-robin by rank in the cell)")
@@ -222,6 +237,10 @@ def main() -> int:
         config, overrides = config_from_overrides(args.set)
     except VORuntimeError as error:
         print(f"error: {error}", file=sys.stderr)
+        return 2
+    unknown = [light for light in args.light.split(",") if light not in LIGHTS]
+    if unknown:
+        print(f"error: --light {unknown[0]!r} is none of {', '.join(LIGHTS)}", file=sys.stderr)
         return 2
     if args.seeds != "study" and (not args.seeds.isdigit() or int(args.seeds) < 1):
         print(f"error: --seeds takes a positive number of noise draws or study, got {args.seeds!r}", file=sys.stderr)

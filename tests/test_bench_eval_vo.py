@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -17,7 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
      "error: --set init_wanted_landmarks=1.5"),
     (["--sequences", "tum_fr2_desk_snippet", "--seeds", "0"], "error: --seeds"),
     (["--sequences", "tum_fr2_desk_snippet", "--seeds", "two"], "error: --seeds"),
-], ids=["unknown sequence", "mistyped --set", "no noise draws", "not a number of draws"])
+    (["--sequences", "tum_fr2_desk_snippet", "--light", "normal,dusk"], "error: --light 'dusk'"),
+], ids=["unknown sequence", "mistyped --set", "no noise draws", "not a number of draws", "unknown light"])
 def test_bad_input_is_one_error_line_before_any_run_and_writes_nothing(tmp_path, shared_data, args, says):
     output = tmp_path / "table"
     run = subprocess.run([sys.executable, str(ROOT / "bench" / "eval_vo.py"), "--data", str(shared_data), *args,
@@ -43,3 +45,21 @@ def test_each_noise_draw_is_a_run_of_its_own_against_orb_of_the_same_draw(tmp_pa
     assert learned[0]["ate"] != learned[1]["ate"] or learned[0]["tracked"] != learned[1]["tracked"]
     assert "| TUM fr2 desk | default_artefact | low | 2 of 2 |" in run.stdout
     assert len(list((output / "trajectories").glob("*_noise1.txt"))) == 2
+
+
+def test_grain_is_one_grey_level_of_seeded_noise_at_normal_lights_starts():
+    sys.path.insert(0, str(ROOT))  # bench/ is a folder of scripts
+    from bench.eval_vo import GRAIN_SIGMA, LIGHTS, STARTS, study_starts
+
+    frame = np.full((240, 320), 128, np.uint8)
+    frame[:, :4], frame[:, -4:] = 0, 255  # clipped at both ends, never wrapped round
+    grainy = LIGHTS["grain"](frame, seed=7)
+    assert grainy.dtype == np.uint8 and grainy.shape == frame.shape
+    assert np.array_equal(grainy, LIGHTS["grain"](frame, seed=7))  # a draw is its seed's
+    assert not np.array_equal(grainy, LIGHTS["grain"](frame, seed=8))
+    middle = grainy[:, 4:-4].astype(np.float64) - 128
+    # rounding to grey levels adds a uniform error of variance 1/12
+    assert abs(middle.mean()) < 0.02 and abs(middle.std() - np.sqrt(GRAIN_SIGMA ** 2 + 1 / 12)) < 0.015
+    assert grainy[:, :4].max() <= 4 and grainy[:, -4:].min() >= 251
+    name = "kitti_odom07_f000000-000159"
+    assert study_starts(name, "grain", 160) == study_starts(name, "normal", 160) == list(STARTS["normal"][name])
