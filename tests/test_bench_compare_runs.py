@@ -1,0 +1,80 @@
+"""bench/compare_runs.py: two eval_vo runs paired by start and draw, ratio with an interval over starts."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "bench" / "compare_runs.py"
+
+
+def _row(start: int, seed: int, ate: float | None, features: str = "default_artefact", lost: int = 0) -> dict:
+    return {"name": "kitti_odom07_f000000-000159", "features": features, "light": "low", "start": start,
+            "seed": seed, "ate": ate, "after_init": 100, "tracked": 100 - lost}
+
+
+def _write(path: Path, rows: list[dict]) -> Path:
+    path.write_text(json.dumps({"overrides": {}, "rows": rows}))
+    return path
+
+
+def _compare(*args: object) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), *map(str, args)], capture_output=True, text=True, timeout=60)
+
+
+def _table_row(stdout: str) -> list[str]:
+    line = next(line for line in stdout.splitlines() if line.startswith("| kitti_odom07"))
+    return [cell.strip() for cell in line.strip("|").split("|")]
+
+
+def test_a_uniform_change_is_its_ratio_with_no_spread_and_failures_are_counted_apart(tmp_path):
+    base_ates = {0: 0.1, 25: 0.2, 50: 0.4}
+    base = [_row(s, d, a * (1 + 0.1 * d)) for s, a in base_ates.items() for d in range(2)]
+    new = [_row(s, d, 2 * a * (1 + 0.1 * d), lost=3) for s, a in base_ates.items() for d in range(2)]
+    new.append(_row(75, 0, None, lost=40))  # a run without a trajectory ...
+    base.append(_row(75, 0, 0.3))            # ... leaves the ratio, and is counted
+    run = _compare(_write(tmp_path / "a.json", base), _write(tmp_path / "b.json", new))
+    assert run.returncode == 0, run.stderr
+    cells = _table_row(run.stdout)
+    assert cells[2] == "7"  # runs paired
+    expected_base = np.exp(np.mean(np.log([a * (1 + 0.1 * d) for a in base_ates.values() for d in range(2)])))
+    assert float(cells[3]) == pytest.approx(expected_base, abs=1e-4)
+    assert float(cells[4]) == pytest.approx(2 * expected_base, abs=1e-4)
+    assert cells[5] == "2.00x [2.00, 2.00]"
+    assert cells[6] == "0 / 1" and cells[7] == "0 / 58"
+
+
+def test_the_interval_resamples_starts_and_spans_their_spread(tmp_path):
+    ratios = {0: 0.5, 10: 0.8, 20: 1.0, 30: 1.25, 40: 2.0}
+    base = [_row(s, 0, 0.2) for s in ratios]
+    new = [_row(s, 0, 0.2 * r, features="other") for s, r in ratios.items()]
+    run = _compare(_write(tmp_path / "a.json", base), _write(tmp_path / "b.json", new),
+                   "--base-features", "default_artefact", "--new-features", "other")
+    assert run.returncode == 0, run.stderr
+    assert "other against default_artefact" in run.stdout
+    ratio, interval = _table_row(run.stdout)[5].split("x ")
+    low, high = (float(v) for v in interval.strip("[]").split(","))
+    assert float(ratio) == pytest.approx(1.0, abs=0.005)  # symmetric in log
+    assert 0.5 <= low < 0.9 and 1.1 < high <= 2.0
+
+
+@pytest.mark.parametrize("content, says", [
+    (None, "cannot read"),
+    ("{not json", "is not JSON"),
+    (json.dumps({"rows": [{"name": "x"}]}), "is not a bench/eval_vo.py results.json"),
+    (json.dumps({"rows": [_row(0, 0, 0.1, features="orb")]}), "no runs pair up"),
+], ids=["missing", "not json", "not results", "nothing pairs"])
+def test_bad_input_is_one_error_line_exit_2(tmp_path, content, says):
+    base = _write(tmp_path / "a.json", [_row(0, 0, 0.1)])
+    new = tmp_path / "b.json"
+    if content is not None:
+        new.write_text(content)
+    run = _compare(base, new)
+    lines = run.stderr.strip().splitlines()
+    assert run.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ") and says in lines[0]
+    assert run.stdout == ""
