@@ -66,7 +66,6 @@ STARTS = {
     "low": {"kitti_odom07_f000000-000159": range(0, 101, 25), "kitti_odom06_f000000-000050": range(0, 21, 10),
             "tum_fr2_desk_snippet": [0], "euroc_mh05_f000000-000199": range(0, 101, 20)},
 }
-# normal light; "low": the global --lowlight dark preset (2,3,0.3); "onboard": a light riding on the camera
 # "grain": normal light plus one grey level of sensor noise. Normal light is deterministic, so each start is one
 # run, and a KITTI 07 run is chaotic enough that this much noise moved a start from 0.165 to 0.32-0.35 m: draws
 # of it (--seeds) tell the weights' or settings' effect on a normal-light row from the chaos of single runs.
@@ -79,6 +78,7 @@ def sensor_grain(gray: np.ndarray, seed: int = 0) -> np.ndarray:
     return np.clip(np.rint(gray + noise), 0, 255).astype(np.uint8)
 
 
+# normal light; "low": the global --lowlight dark preset (2,3,0.3); "onboard": a light riding on the camera
 LIGHTS = {"normal": None, "low": PRESETS["dark"], "onboard": PRESETS["onboard"], "grain": sensor_grain}
 # Sensor-noise draws per start of a darkened run. TUM's 23-frame snippet allows one start, and one draw of the
 # noise moved its dark ATE from 0.005 to 0.032 m (12 draws, default artefact): there the study runs six.
