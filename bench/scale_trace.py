@@ -8,8 +8,8 @@ ATE says that a run failed; this says when and how. For every tracked frame i wi
 travel (the local scale; normalised by its median over the first 20 tracked frames, so 1.0 is "the scale of
 the first map", and a collapse shows as a drop), the angle between the estimated and the true direction of
 travel, and the error of the relative rotation over the k frames, beside the frame's state, inliers and
-keyframe flag. Frames are darkened as `bench/eval_vo.py` does (the same seeds), so a start and light here is
-that table's run. Scale-free quantities only: no alignment, so one bad stretch does not smear over the rest.
+keyframe flag. Frames are darkened as `bench/eval_vo.py` does (the same seeds; ``--seed K`` its K-th noise draw),
+so a start, light and draw here is that table's run. Scale-free quantities only: no alignment, so one bad stretch does not smear over the rest.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.eval_vo import LIGHTS  # noqa: E402
+from bench.eval_vo import LIGHTS, NOISE_SEED_STRIDE  # noqa: E402
 from vo_runtime import FeatureExtractor, OrbExtractor, VisualOdometry  # noqa: E402
 from vo_runtime.artefact import default_artefact  # noqa: E402
 from vo_runtime.config_overrides import config_from_overrides  # noqa: E402
@@ -74,6 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--light", choices=sorted(LIGHTS), default="normal")
     parser.add_argument("--features", choices=("artefact", "orb"), default="artefact")
     parser.add_argument("--artefact", type=Path, help="default: the shipped artefact for the camera")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="noise draw of a darkened run, as eval_vo's --seeds numbers them (0: the first)")
     parser.add_argument("--gap", type=int, default=5, help="frames between the two poses compared")
     parser.add_argument("--every", type=int, default=5, help="print every this many frames")
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=JSON",
@@ -89,6 +91,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def run(args: argparse.Namespace) -> int:
     sequence = open_sequence(args.sequence)
+    if args.seed < 0:
+        raise VORuntimeError(f"--seed {args.seed}: noise draws are numbered from 0")
     if not 0 <= args.start < len(sequence.frames) - args.gap:
         raise VORuntimeError(f"--start {args.start}: the sequence has {len(sequence.frames)} frames")
     frames, stamps = sequence.frames[args.start:], sequence.timestamps[args.start:]
@@ -104,11 +108,12 @@ def run(args: argparse.Namespace) -> int:
     vo = VisualOdometry(extractor, sequence.camera, config)
     for index, image in enumerate(read_frames(frames)):
         if LIGHTS[args.light] is not None:
-            image = LIGHTS[args.light](to_gray_u8(image), seed=args.start + index)
+            image = LIGHTS[args.light](to_gray_u8(image), seed=args.start + index + NOISE_SEED_STRIDE * args.seed)
         vo.track(image, stamps[index])
     vo.finish()
     rows = trace(vo.results, truth, args.gap)
-    print(f"{args.sequence.name} from {args.start}, {args.light} light, {args.features}: {len(rows)} frames traced "
+    draw = f" (noise draw {args.seed})" if args.seed else ""
+    print(f"{args.sequence.name} from {args.start}, {args.light} light{draw}, {args.features}: {len(rows)} frames traced "
           f"(frame numbers from the start; scale 1.0 = median of the first {REFERENCE_FRAMES})")
     print("frame  state          inliers  kf  scale  dir_err_deg  rot_err_deg  true_travel_mm")
     for r in rows:

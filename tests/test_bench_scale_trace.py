@@ -52,3 +52,33 @@ def test_a_start_past_the_sequence_is_one_error_line(shared_data, tmp_path):
     assert run.returncode == 2
     lines = run.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: --start 100000") and not plot.exists()
+
+
+def test_a_noise_draw_is_eval_vos_run_of_that_draw(shared_data):
+    # TUM in the dark, draw 1: the tracer's per-frame inliers are those of bench/eval_vo.py's run of draw 1
+    # (the same darkening seeds), and differ from draw 0's.
+    from bench.eval_vo import run_one
+    from vo_runtime import VOConfig
+    from vo_runtime.artefact import default_artefact
+
+    sequence = shared_data / "tum_fr2_desk_snippet"
+    traced = {}
+    for seed in (0, 1):
+        run = subprocess.run([sys.executable, str(ROOT / "bench" / "scale_trace.py"), "--sequence", str(sequence),
+                              "--light", "low", "--seed", str(seed), "--every", "1", "--gap", "2"],
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr
+        lines = [line.split() for line in run.stdout.splitlines()[2:] if line.strip()]
+        traced[seed] = {int(cells[0]): int(cells[2]) for cells in lines}
+    assert traced[0] != traced[1]
+    row = run_one(sequence, "artefact", "low", 2000, VOConfig(), default_artefact(640, 480), None, seed=1)
+    inliers = {result.index: result.num_inliers for result in row["_results"]}
+    assert traced[1] and all(inliers[frame] == count for frame, count in traced[1].items())
+
+
+def test_a_negative_noise_draw_is_one_error_line(shared_data):
+    run = subprocess.run([sys.executable, str(ROOT / "bench" / "scale_trace.py"), "--sequence",
+                          str(shared_data / "tum_fr2_desk_snippet"), "--light", "low", "--seed", "-1"],
+                         capture_output=True, text=True, timeout=120)
+    lines = run.stderr.strip().splitlines()
+    assert run.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: --seed -1")
