@@ -43,7 +43,8 @@ def load_rows(path: Path) -> list[dict]:
 
 
 def _by_run(rows: list[dict], features: str) -> dict[Key, dict]:
-    return {(r["name"], r["light"], int(r["start"]), int(r.get("seed", 0))): r for r in rows if r["features"] == features}
+    return {(r["name"], r["light"], int(r["start"]), int(r.get("seed", 0))): r
+            for r in rows if r["features"] == features}
 
 
 def pair_runs(base: list[dict], new: list[dict], base_features: str,
@@ -76,7 +77,8 @@ def comparison_table(groups: dict[tuple[str, str], list[tuple[dict, dict]]]) -> 
                      f"{ratio:.2f}x [{low:.2f}, {high:.2f}]")
         else:
             cells = "- | - | -"
-        lines.append(f"| {name} | {light} | {len(pairs)} | {cells} | {failed[0]} / {failed[1]} | {lost[0]} / {lost[1]} |")
+        lines.append(f"| {name} | {light} | {len(pairs)} | {cells} | {failed[0]} / {failed[1]} | "
+                     f"{lost[0]} / {lost[1]} |")
     return "\n".join(lines)
 
 

@@ -86,6 +86,14 @@ STUDY_SEEDS = {"tum_fr2_desk_snippet": 6}
 NOISE_SEED_STRIDE = 100_000  # draw k darkens frame i with seed start + i + k * stride (k = 0: the single-draw noise)
 
 
+def lit_frame(image: np.ndarray, light: str, start: int, index: int, draw: int = 0) -> np.ndarray:
+    """Frame ``index`` of a run from ``start`` as that run sees it under ``light`` (LIGHTS) in noise draw ``draw``:
+    the same noise for a frame at any start, another for each draw; unchanged in normal light."""
+    if LIGHTS[light] is None:
+        return image
+    return LIGHTS[light](to_gray_u8(image), seed=start + index + NOISE_SEED_STRIDE * draw)
+
+
 def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, config: VOConfig, artefact: Path,
             plot_dir: Path | None, size: tuple[int, int] | None = None, start: int = 0,
             budget: tuple[int, tuple[int, int] | None] | None = None, seed: int = 0) -> dict:
@@ -102,10 +110,7 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, confi
     for index, image in enumerate(read_frames(frames)):
         if size is not None:
             image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-        if LIGHTS[light] is not None:
-            # the same noise at any start; ``seed`` picks another draw of it
-            image = LIGHTS[light](to_gray_u8(image), seed=start + index + NOISE_SEED_STRIDE * seed)
-        vo.track(image, stamps[index])
+        vo.track(lit_frame(image, light, start, index, seed), stamps[index])
     vo.finish()  # a keyframe's mapping still on the worker thread (--set mapping_thread=true)
     results = vo.results
     states = [r.status for r in results]

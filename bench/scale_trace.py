@@ -8,8 +8,9 @@ ATE says that a run failed; this says when and how. For every tracked frame i wi
 travel (the local scale; normalised by its median over the first 20 tracked frames, so 1.0 is "the scale of
 the first map", and a collapse shows as a drop), the angle between the estimated and the true direction of
 travel, and the error of the relative rotation over the k frames, beside the frame's state, inliers and
-keyframe flag. Frames are darkened as `bench/eval_vo.py` does (the same seeds; ``--seed K`` its K-th noise draw),
-so a start, light and draw here is that table's run. Scale-free quantities only: no alignment, so one bad stretch does not smear over the rest.
+keyframe flag. Frames are darkened as `bench/eval_vo.py` does (`lit_frame`; ``--seed K`` its K-th noise draw),
+so a start, light and draw here is that table's run. Scale-free quantities only: no alignment, so one bad stretch
+does not smear over the rest.
 """
 from __future__ import annotations
 
@@ -22,14 +23,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.eval_vo import LIGHTS, NOISE_SEED_STRIDE  # noqa: E402
+from bench.eval_vo import LIGHTS, lit_frame  # noqa: E402
 from vo_runtime import FeatureExtractor, OrbExtractor, VisualOdometry  # noqa: E402
 from vo_runtime.artefact import default_artefact  # noqa: E402
 from vo_runtime.config_overrides import config_from_overrides  # noqa: E402
 from vo_runtime.datasets import frame_size, open_sequence  # noqa: E402
 from vo_runtime.errors import VORuntimeError, first_line  # noqa: E402
 from vo_runtime.evaluate import sequence_groundtruth  # noqa: E402
-from vo_runtime.features import to_gray_u8  # noqa: E402
 from vo_runtime.odometry import TRACKED_STATES  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
 
@@ -107,14 +107,12 @@ def run(args: argparse.Namespace) -> int:
     config, _ = config_from_overrides(args.set)
     vo = VisualOdometry(extractor, sequence.camera, config)
     for index, image in enumerate(read_frames(frames)):
-        if LIGHTS[args.light] is not None:
-            image = LIGHTS[args.light](to_gray_u8(image), seed=args.start + index + NOISE_SEED_STRIDE * args.seed)
-        vo.track(image, stamps[index])
+        vo.track(lit_frame(image, args.light, args.start, index, args.seed), stamps[index])
     vo.finish()
     rows = trace(vo.results, truth, args.gap)
     draw = f" (noise draw {args.seed})" if args.seed else ""
-    print(f"{args.sequence.name} from {args.start}, {args.light} light{draw}, {args.features}: {len(rows)} frames traced "
-          f"(frame numbers from the start; scale 1.0 = median of the first {REFERENCE_FRAMES})")
+    print(f"{args.sequence.name} from {args.start}, {args.light} light{draw}, {args.features}: {len(rows)} frames "
+          f"traced (frame numbers from the start; scale 1.0 = median of the first {REFERENCE_FRAMES})")
     print("frame  state          inliers  kf  scale  dir_err_deg  rot_err_deg  true_travel_mm")
     for r in rows:
         if r["frame"] % max(args.every, 1) == 0:
