@@ -46,8 +46,9 @@ AHEAD = 2  # frames extracted ahead by `MonoVO.stream` (the default of `python -
 
 
 def run(name: str, extractor, frames: list[np.ndarray], camera, stamps: list[float], threaded: bool = False,
-        ahead: int = 0) -> dict:
-    vo = VisualOdometry(extractor, camera, VOConfig(mapping_thread=threaded))
+        ahead: int = 0, travel_check: bool = True) -> dict:
+    config = VOConfig(mapping_thread=threaded, travel_check_gap=VOConfig().travel_check_gap if travel_check else 0)
+    vo = VisualOdometry(extractor, camera, config)
     start = time.perf_counter()
     if ahead:
         for _ in vo.stream(zip(frames, stamps), ahead=ahead):
@@ -91,15 +92,17 @@ def main() -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         default = FeatureExtractor(default_artefact(*size), threads=1)  # the shipped one for this aspect
-        runs = [("orb-1000", OrbExtractor(1000), False, 0), ("orb-2000", OrbExtractor(2000), False, 0),
-                ("harris-fixture", FeatureExtractor(write_artefact(Path(tmp) / "harris"), threads=1), False, 0),
-                (f"default {default.height}x{default.width}", default, False, 0),
-                ("default + thread", default, True, 0),  # mapping on a second thread
-                ("default + ahead", default, False, AHEAD)]  # the network 2 frames ahead on a second thread
-        runs += [(Path(a).name, FeatureExtractor(a, threads=1), False, 0) for a in args.artefact]
-        runs += [(Path(a).name + " + ahead", FeatureExtractor(a, threads=1), False, AHEAD) for a in args.artefact]
-        rows = [max((run(name, ex, frames, camera, sequence.timestamps, threaded, ahead) for _ in range(args.repeat)),
-                    key=lambda row: row["fps"]) for name, ex, threaded, ahead in runs]
+        runs = [("orb-1000", OrbExtractor(1000), False, 0, True), ("orb-2000", OrbExtractor(2000), False, 0, True),
+                ("harris-fixture", FeatureExtractor(write_artefact(Path(tmp) / "harris"), threads=1), False, 0, True),
+                (f"default {default.height}x{default.width}", default, False, 0, True),
+                ("default, no travel ck", default, False, 0, False),  # what the travel check costs
+                ("default + thread", default, True, 0, True),  # mapping on a second thread
+                ("default + ahead", default, False, AHEAD, True)]  # the network 2 frames ahead on a second thread
+        runs += [(Path(a).name, FeatureExtractor(a, threads=1), False, 0, True) for a in args.artefact]
+        runs += [(Path(a).name + " + ahead", FeatureExtractor(a, threads=1), False, AHEAD, True) for a in args.artefact]
+        rows = [max((run(name, ex, frames, camera, sequence.timestamps, threaded, ahead, check)
+                     for _ in range(args.repeat)), key=lambda row: row["fps"])
+                for name, ex, threaded, ahead, check in runs]
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"{len(frames)} frames of {Path(args.sequence).name} at {size[0]}x{size[1]}, 1 thread, best of "
           f"{args.repeat}; load average {load:.1f} on {os.cpu_count()} CPUs; ms per frame")

@@ -76,6 +76,20 @@ class VOConfig:
     pose_check: bool = True
     pose_check_jump: float = 1.0
     pose_check_share: float = 0.5
+    # The travel check (`travel_check.py`): every tracked frame's direction of travel since the tracked frame
+    # travel_check_gap frames back is compared with an essential matrix fitted to the landmarks both saw;
+    # travel_check_frames consecutive checks whose essential directions agree within
+    # travel_check_consistency_deg and disagree with the map by a median over travel_check_max_deg abandon
+    # the map (status lost, `problem` says why) and initialise again, on the check's own baseline when it can,
+    # at the speed from before. 0: off. On every dev run with noise draws (EuRoC 18 starts x 3 draws dark and
+    # onboard, KITTI 06 x 4, KITTI 07 x 3, TUM x 12, the aligned rows; learned and ORB) it fired on the three
+    # broken learned drone runs (1.01 / 0.48 / 0.50 -> 0.10 / 0.27 / 0.37 m) and two broken ORB ones (0.18 ->
+    # 0.09 m) and changed no other run (docs/vo_takeoff.md, "Noticing a broken track").
+    travel_check_gap: int = 10
+    travel_check_max_deg: float = 20.0
+    travel_check_consistency_deg: float = 20.0
+    travel_check_frames: int = 5
+    travel_check_min_inliers: int = 20
     # Patch alignment (`refine.py`): matched keypoints move onto the patch around the landmark's latest
     # keyframe observation (window in frame pixels; 0: off) before the pose and new landmarks are computed.
     # It runs when a detector pixel spans at least `align_min_detector_pixel` frame pixels (an artefact that
@@ -109,6 +123,10 @@ class VOConfig:
             raise VORuntimeError("align_window_px must be >= 0, align_max_shift > 0 and align_gain >= 1")
         if self.probation_frames < 0 or self.probation_max_deg <= 0 or self.probation_max_discards < 0:
             raise VORuntimeError("probation_frames and probation_max_discards must be >= 0, probation_max_deg > 0")
+        if self.travel_check_gap < 0 or self.travel_check_frames < 1 or self.travel_check_min_inliers < 5 \
+                or self.travel_check_max_deg <= 0 or self.travel_check_consistency_deg <= 0:
+            raise VORuntimeError("travel_check_gap must be >= 0, travel_check_frames >= 1, travel_check_min_inliers "
+                                 ">= 5 and the travel check's angles > 0")
         if self.speed_frames < 1:
             raise VORuntimeError("speed_frames must be >= 1")
         if self.pose_check_jump <= 0 or not 0 < self.pose_check_share <= 1:

@@ -1,5 +1,5 @@
-"""`MapLifecycle`: how `MonoVO` starts a map (a two-view initialisation that succeeded) and throws a young one
-away (a first map that failed its probation, `probation.py`).
+"""`MapLifecycle`: how `MonoVO` starts a map (a two-view initialisation that succeeded) and throws one away (a
+first map that failed its probation, `probation.py`; a map the travel check found broken, `travel_check.py`).
 
 A base class of `MonoVO` only, over its state (``self.map``, ``self._poses_cw``, ``self._probation``, ...), as
 `KeyframeUpkeep` is: split from odometry.py so that file keeps the frame-by-frame states.
@@ -11,7 +11,7 @@ import numpy as np
 from vo_runtime.config import VOResult
 from vo_runtime.geometry import invert_pose, per_frame_motion
 from vo_runtime.localmap import Keyframe, LocalMap
-from vo_runtime.states import INITIALISING, REINITIALISED, TRACKING
+from vo_runtime.states import INITIALISING, LOST, REINITIALISED, TRACKING
 from vo_runtime.tracking import FrameData
 
 
@@ -33,6 +33,45 @@ class MapLifecycle:
         result.problem = (f"map discarded: its frame-to-frame rotations disagreed with the frames' own by {median:.2f} "
                           f"deg (median of {len(self._probation.values)} frames)")
 
+    def _travel_broken(self, index: int, frame: FrameData, landmark: np.ndarray, pose_cw: np.ndarray,
+                       result: VOResult) -> bool:
+        """The travel check's verdict on a tracked frame; a map judged broken is abandoned (True)."""
+        if not self._travel.active:
+            return False
+        degrees = self._travel.judge(index, landmark, frame.points, pose_cw,
+                                     self.config.ransac_threshold_px / self._focal, keep=frame)
+        if degrees is None:
+            return False
+        self._abandon_map(index, frame, result, degrees)
+        return True
+
+    def _abandon_map(self, index: int, frame: FrameData, result: VOResult, degrees: float) -> None:
+        """The travel check (`travel_check.py`) found the map's direction of travel broken: drop the map as a
+        loss would, and initialise again from this frame at the median speed measured before the frames that
+        judged it (a broken map shrinks its scale while it breaks). This frame is lost, its pose held."""
+        check, frames = self._travel, self.config.speed_frames
+        before = index - check.gap - check.frames
+        speeds = [speed for number, speed in self._speed_log if number <= before][-frames:] or list(self._speeds)
+        start = index - check.gap
+        earlier = check.frame_at(start)  # before forgetting the map clears the check
+        self._forget_map()
+        self._speeds.extend(speeds)
+        self._probation.end()
+        result.status, result.tracked_by = LOST, None
+        result.problem = (f"map abandoned: its direction of travel disagreed with the frames' own geometry by "
+                          f"{degrees:.0f} deg (median of {check.frames} checks over {check.gap} frames)")
+        # The check's first frame and this one are a baseline the essential matrix just found well
+        # conditioned: initialise on it at once rather than wait for new parallax from here.
+        if earlier is None:
+            self._initialiser.restart(index, frame)
+            return
+        self._initialiser.restart(start, earlier)
+        result.num_matches = self._initialiser.add(index, frame)
+        outcome = self._initialiser.try_initialise(index, self._poses_cw, self._speed)
+        if outcome is not None:
+            self._start_map(index, outcome, result)
+            result.problem += "; initialised again on it"
+
     def _start_map(self, index: int, outcome, result: VOResult) -> None:
         """A (re)initialisation succeeded: a new map of two keyframes."""
         reinitialised = self.map is not None or bool(self._speeds)
@@ -53,6 +92,7 @@ class MapLifecycle:
                                           index - outcome.reference_index)
         self._speeds.clear()
         self._speeds.append(outcome.speed)
+        self._travel.clear()
         if reinitialised:
             self._probation.end()
         else:

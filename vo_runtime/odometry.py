@@ -10,6 +10,8 @@ States of a frame (``VOResult.status``), and what moves between them:
   The first map is on probation for ``VOConfig.probation_frames`` tracked frames (`probation.py`): when the
   rotations it tracks disagree with the rotations the frames' own matches give, it is discarded, its frames
   go back to ``initialising`` (``problem`` says why on the frame that discarded it), and a new map is built.
+  With ``VOConfig.travel_check_gap``, a map whose direction of travel the frames' own geometry contradicts
+  (`travel_check.py`) is abandoned: that frame is ``lost`` and a new map is built as after a loss.
 - ``tracking``: the pose predicted by a constant-velocity model projects the local map (landmarks of the
   reference keyframe and its covisible keyframes) into the frame; guided matching and a robust refinement
   give the pose, with a wider search and then the previous frame as fallbacks (`tracking.py`;
@@ -60,6 +62,7 @@ from vo_runtime.states import (INITIALISING, LOST, REINITIALISED, RELOCALISED, S
                                TRACKED_STATES, TRACKING)
 from vo_runtime.timestamps import checked_timestamp
 from vo_runtime.tracking import RELOCALISATION, FrameData, TrackingSettings, guided_pose, refit_pose, track_frame
+from vo_runtime.travel_check import TravelCheck
 
 
 
@@ -93,11 +96,13 @@ class MonoVO(MapLifecycle, KeyframeUpkeep):
         self._mapping_job: Callable[[], None] | None = None  # a keyframe's mapping, for the worker thread
         self.results: list[VOResult] = []
         self._poses_cw: list[np.ndarray] = []        # world-to-camera, one per processed frame
+        cfg = self.config
+        self._travel = TravelCheck(cfg.travel_check_gap, cfg.travel_check_max_deg, cfg.travel_check_consistency_deg,
+                                   cfg.travel_check_frames, cfg.travel_check_min_inliers)
         self._forget_map()
         self._lost_tries = 0
         self._focal = self.camera.focal              # pixels per normalised unit, in the detector's pixels
         self._initialiser = Initialiser(self.config, self._focal)
-        cfg = self.config
         self._probation = MapProbation(cfg.probation_frames, cfg.probation_max_deg, cfg.probation_max_discards,
                                        cfg.match_max_distance, cfg.match_ratio)
         self._frame_size: tuple[int, int] | None = None  # (height, width) of the frames, fixed by the first one
@@ -120,6 +125,10 @@ class MonoVO(MapLifecycle, KeyframeUpkeep):
         # World units per frame of the latest `speed_frames` tracked frames (or the first map's baseline):
         # the scale of a re-initialisation (`_speed`); empty before any map.
         self._speeds: deque[float] = deque(maxlen=self.config.speed_frames)
+        # (frame, speed) of the latest tracked frames: a re-initialisation after an abandoned map takes its scale
+        # from the frames before those that judged it broken (`_abandon_map`).
+        self._speed_log: deque[tuple[int, float]] = deque(maxlen=3 * self.config.speed_frames)
+        self._travel.clear()
 
     @property
     def _speed(self) -> float | None:
@@ -354,12 +363,15 @@ class MonoVO(MapLifecycle, KeyframeUpkeep):
             if self._probation.judge(value):
                 self._discard_map(index, frame, result)
                 return
+        if status == TRACKING and self._travel_broken(index, frame, outcome.landmark, pose, result):
+            return
         if self._last_tracked >= 0 and (self._lost_since < 0 or status == TRACKING):
             gap = index - self._last_tracked
             step = pose @ invert_pose(self._poses_cw[self._last_tracked])
             self._velocity = step if gap == 1 else self._velocity
             travel = float(np.linalg.norm(camera_centre(pose) - camera_centre(self._poses_cw[self._last_tracked]))) / gap
             self._speeds.append(travel)
+            self._speed_log.append((index, travel))
         else:
             self._velocity = np.eye(4)  # after a relocalisation the motion is unknown
         self._poses_cw[index] = pose
