@@ -63,6 +63,7 @@ def test_a_map_that_fails_its_probation_is_discarded_and_built_again():
     discarded = [r.index for r in vo.results if r.problem and r.problem.startswith("map discarded")]
     assert len(discarded) == 1
     at = discarded[0]
+    assert vo.results[at].map_dropped and sum(r.map_dropped for r in vo.results) == 1
     statuses = [r.status for r in vo.results]
     assert all(s == INITIALISING for s in statuses[: at + 1])
     assert all(r.keyframe is False for r in vo.results[: at + 1])

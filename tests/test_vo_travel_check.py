@@ -1,6 +1,7 @@
 """The travel check: the essential direction, the verdict's gates, and MonoVO abandoning a map it breaks."""
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -70,6 +71,24 @@ def test_a_map_travelling_45_degrees_off_is_broken_after_its_checks(cloud):
     assert abs(verdicts[first] - 45.0) < 3.0
 
 
+def test_an_earlier_pose_the_adjustment_set_right_is_judged_as_it_is_now(cloud):
+    """The first five frames were tracked 0.2 off to the side (their travel to the frames five later then looks
+    39 deg off), but the adjustment has since moved them where they belong (``pose_of`` gives the pose now):
+    no verdict with it, a verdict without it."""
+    points, rng = cloud
+    true = [np.array([0.05, 0.0, 0.0]) * i for i in range(30)]
+    tracked = [c + np.array([0.0, 0.0, 0.2]) if i < 5 else c for i, c in enumerate(true)]
+    now = {i: pose_cw_at(c) for i, c in enumerate(true)}
+    check = TravelCheck(gap=5, max_deg=20.0, consistency_deg=20.0, frames=5, min_inliers=40)
+    verdicts = [check.judge(i, np.arange(len(points)), view(points, true[i], rng, 0.5), pose_cw_at(tracked[i]),
+                            1.0 / FOCAL, pose_of=now.__getitem__) for i in range(30)]
+    assert verdicts == [None] * 30
+    stale = TravelCheck(gap=5, max_deg=20.0, consistency_deg=20.0, frames=5, min_inliers=40)
+    verdicts = [stale.judge(i, np.arange(len(points)), view(points, true[i], rng, 0.5), pose_cw_at(tracked[i]),
+                            1.0 / FOCAL) for i in range(30)]
+    assert verdicts[9] is not None and abs(verdicts[9] - 38.7) < 5.0
+
+
 def test_directions_that_jump_from_check_to_check_make_no_verdict(cloud):
     """Essential directions that disagree with the map but swing 45 deg to either side from one check to the next
     (as noise does: the take-off's first millimetres gave 70-96 deg, never the same twice) leave the map alone;
@@ -93,7 +112,8 @@ def test_an_abandoned_map_is_lost_then_built_again_at_the_speed_before():
     abandoned = [r.index for r in vo.results if r.problem and r.problem.startswith("map abandoned")]
     assert abandoned, "the check never fired"
     at = abandoned[0]
-    assert vo.results[at].status == LOST
+    assert vo.results[at].status == LOST and vo.results[at].map_dropped
+    assert sum(r.map_dropped for r in vo.results) == len(abandoned)
     np.testing.assert_allclose(vo.results[at].pose, vo.results[at - 1].pose)  # held, not tracked
     again = next(r.index for r in vo.results[at:] if r.status == REINITIALISED)
     first = next(r.index for r in vo.results if r.status == TRACKING)
@@ -126,6 +146,27 @@ def test_off_when_its_gap_is_zero_and_settings_checked():
         VOConfig(travel_check_gap=-1)
     with pytest.raises(VORuntimeError, match="travel_check"):
         VOConfig(travel_check_max_deg=0.0)
+
+
+def test_the_cli_counts_and_names_dropped_maps(shared_data, tmp_path, capsys):
+    """`python -m vo_runtime` says when it threw a map away: a summary count, one warning line, the frame's record.
+    A gate every map fails (--set) makes it happen on a short real sequence."""
+    from vo_runtime.cli import main
+
+    run_dir = tmp_path / "run"
+    code = main(["--features", "orb", "--images", str(shared_data / "tum_fr2_desk_snippet"), "--no-progress",
+                 "--json", "--set", "travel_check_max_deg=1e-9", "--set", "travel_check_frames=2", "-o", str(run_dir)])
+    captured = capsys.readouterr()
+    assert code == 0
+    summary = json.loads(captured.out)
+    frames = json.loads((run_dir / "frames.json").read_text())
+    dropped = [f for f in frames if f.get("map_dropped")]
+    assert summary["maps_dropped"] == len(dropped) >= 1
+    assert all(f["problem"].startswith("map abandoned") for f in dropped)
+    assert f"dropped {len(dropped)} broken map(s)" in captured.err and f"frame {dropped[0]['index']}" in captured.err
+    main(["--features", "orb", "--images", str(shared_data / "tum_fr2_desk_snippet"), "--no-progress",
+          "--json", "-o", str(tmp_path / "plain")])
+    assert json.loads(capsys.readouterr().out)["maps_dropped"] == 0  # the default gates keep this run's map
 
 
 def test_the_dark_take_off_that_broke_is_abandoned_and_recovers(shared_data):

@@ -196,6 +196,7 @@ def _run(args: argparse.Namespace, claim: OutputClaim | None) -> int:
         "config": args.config_overrides,
         "frames": len(vo.results), "states": {s: states.count(s) for s in dict.fromkeys(states)},
         "skipped_frames": len(skipped),
+        "maps_dropped": sum(r.map_dropped for r in vo.results),  # broken maps noticed and thrown away
         "median_extract_ms": round(float(np.median([r.extract_ms for r in used])), 2),
         "median_track_ms": round(float(np.median([r.track_ms for r in used])), 2),
         "median_inliers": float(np.median([r.num_inliers for r in used])),
@@ -217,6 +218,10 @@ def _run(args: argparse.Namespace, claim: OutputClaim | None) -> int:
     if skipped:
         print(f"warning: skipped {len(skipped)} of {len(frames)} frames (pose held), first: {skipped[0].problem}",
               file=sys.stderr)
+    dropped = [r for r in vo.results if r.map_dropped]
+    if dropped:
+        print(f"warning: the VO dropped {len(dropped)} broken map(s) and built new ones, first at frame "
+              f"{dropped[0].index}: {dropped[0].problem}", file=sys.stderr)
     if claim is not None:  # the line that says where it wrote (stderr under --json, whose stdout is the JSON alone)
         written = sorted(p.name for p in args.output.iterdir() if not p.name.startswith("."))
         print(f"wrote {args.output}: {', '.join(written)}", file=sys.stderr if args.json else sys.stdout)
@@ -250,6 +255,8 @@ def _frame_record(result: VOResult, path: Path) -> dict[str, Any]:
               "mapping_ms": round(result.mapping_ms, 3)}
     if result.problem is not None:
         record["problem"] = result.problem
+    if result.map_dropped:
+        record["map_dropped"] = True
     return record
 
 

@@ -150,7 +150,8 @@ class VOResult:
     extract_ms: float
     track_ms: float
     keyframe: bool = False  # became a keyframe (adds landmarks, runs the local bundle adjustment)
-    problem: str | None = None  # why a skipped frame could not be used, or why a map was discarded here
+    problem: str | None = None  # why a skipped frame could not be used, or why a map was dropped here
+    map_dropped: bool = False   # the VO threw its map away at this frame (probation, travel check; see problem)
     tracked_by: str | None = None  # local map | wide search | previous frame | relocalisation | two-view
     mapping_ms: float = 0.0  # keyframe work (triangulation, bundle adjustment, culling): part of track_ms,
     #                          or on the worker thread with VOConfig.mapping_thread

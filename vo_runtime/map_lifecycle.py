@@ -29,7 +29,7 @@ class MapLifecycle:
         median = float(np.median(self._probation.values))
         self._forget_map()
         self._initialiser.restart(index, frame)
-        result.status, result.tracked_by = INITIALISING, None
+        result.status, result.tracked_by, result.map_dropped = INITIALISING, None, True
         result.problem = (f"map discarded: its frame-to-frame rotations disagreed with the frames' own by {median:.2f} "
                           f"deg (median of {len(self._probation.values)} frames)")
 
@@ -39,7 +39,8 @@ class MapLifecycle:
         if not self._travel.active:
             return False
         degrees = self._travel.judge(index, landmark, frame.points, pose_cw,
-                                     self.config.ransac_threshold_px / self._focal, keep=frame)
+                                     self.config.ransac_threshold_px / self._focal, keep=frame,
+                                     pose_of=self._poses_cw.__getitem__)
         if degrees is None:
             return False
         self._abandon_map(index, frame, result, degrees)
@@ -57,7 +58,7 @@ class MapLifecycle:
         self._forget_map()
         self._speeds.extend(speeds)
         self._probation.end()
-        result.status, result.tracked_by = LOST, None
+        result.status, result.tracked_by, result.map_dropped = LOST, None, True
         result.problem = (f"map abandoned: its direction of travel disagreed with the frames' own geometry by "
                           f"{degrees:.0f} deg (median of {check.frames} checks over {check.gap} frames)")
         # The check's first frame and this one are a baseline the essential matrix just found well
