@@ -83,7 +83,7 @@ class VOConfig:
     # the map (status lost, `problem` says why) and initialise again, on the check's own baseline when it can,
     # at the speed from before. 0: off. On every dev run with noise draws (EuRoC 18 starts x 3 draws dark and
     # onboard, KITTI 06 x 4, KITTI 07 x 3, TUM x 12, the aligned rows; learned and ORB) it fired on the three
-    # broken learned drone runs (1.01 / 0.48 / 0.50 -> 0.10 / 0.27 / 0.37 m) and two broken ORB ones (0.18 ->
+    # broken learned drone runs (1.01 / 0.48 / 0.50 -> 0.10 / 0.30 / 0.37 m) and two broken ORB ones (0.18 ->
     # 0.09 m) and changed no other run (docs/vo_takeoff.md, "Noticing a broken track").
     travel_check_gap: int = 10
     travel_check_max_deg: float = 20.0
