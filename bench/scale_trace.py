@@ -32,13 +32,9 @@ from vo_runtime.errors import VORuntimeError, first_line  # noqa: E402
 from vo_runtime.evaluate import sequence_groundtruth  # noqa: E402
 from vo_runtime.odometry import TRACKED_STATES  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
+from vo_runtime.travel_check import angle_deg  # noqa: E402
 
 REFERENCE_FRAMES = 20  # tracked frames whose median local scale is 1.0
-
-
-def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    cos = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-12)
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
 def rotation_error_deg(estimated: np.ndarray, true: np.ndarray) -> float:

@@ -189,6 +189,7 @@ def _run(args: argparse.Namespace, claim: OutputClaim | None) -> int:
     if not used:
         raise VORuntimeError(f"none of the {len(frames)} frames could be used ({skipped[0].problem})")
     states = [r.status for r in vo.results]
+    dropped = [r for r in vo.results if r.map_dropped]  # broken maps noticed and thrown away
     summary: dict[str, Any] = {
         "features": args.features if args.features == "orb" else str(args.artefact),
         "providers": ",".join(extractor.providers),
@@ -196,7 +197,7 @@ def _run(args: argparse.Namespace, claim: OutputClaim | None) -> int:
         "config": args.config_overrides,
         "frames": len(vo.results), "states": {s: states.count(s) for s in dict.fromkeys(states)},
         "skipped_frames": len(skipped),
-        "maps_dropped": sum(r.map_dropped for r in vo.results),  # broken maps noticed and thrown away
+        "maps_dropped": len(dropped),
         "median_extract_ms": round(float(np.median([r.extract_ms for r in used])), 2),
         "median_track_ms": round(float(np.median([r.track_ms for r in used])), 2),
         "median_inliers": float(np.median([r.num_inliers for r in used])),
@@ -218,7 +219,6 @@ def _run(args: argparse.Namespace, claim: OutputClaim | None) -> int:
     if skipped:
         print(f"warning: skipped {len(skipped)} of {len(frames)} frames (pose held), first: {skipped[0].problem}",
               file=sys.stderr)
-    dropped = [r for r in vo.results if r.map_dropped]
     if dropped:
         print(f"warning: the VO dropped {len(dropped)} broken map(s) and built new ones, first at frame "
               f"{dropped[0].index}: {dropped[0].problem}", file=sys.stderr)

@@ -70,8 +70,8 @@ class TravelCheck:
     def __init__(self, gap: int, max_deg: float, consistency_deg: float, frames: int, min_inliers: int) -> None:
         self.gap, self.max_deg, self.consistency_deg = int(gap), float(max_deg), float(consistency_deg)
         self.frames, self.min_inliers = int(frames), int(min_inliers)
-        self._views: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # frame -> (ids, points, pose_cw)
-        self._kept: dict[int, object] = {}  # frame -> what the caller kept with it (`frame_at`)
+        # frame -> (landmark ids, points, pose_cw as tracked, what the caller kept with it for `frame_at`)
+        self._views: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, object]] = {}
         self._checks: deque[tuple[int, float, np.ndarray]] = deque(maxlen=max(self.frames, 1))
         # (frame, degrees) of the latest checks, for traces; bounded, as a drone flies for hours
         self.last_angles: deque[tuple[int, float]] = deque(maxlen=TRACE_CHECKS)
@@ -83,12 +83,12 @@ class TravelCheck:
     def clear(self) -> None:
         """A new map (or none): views of the old one say nothing about it."""
         self._views.clear()
-        self._kept.clear()
         self._checks.clear()
 
     def frame_at(self, index: int):
         """What `judge` was given as ``keep`` for a frame still in the window (None: none)."""
-        return self._kept.get(index)
+        view = self._views.get(index)
+        return None if view is None else view[3]
 
     def judge(self, index: int, landmark: np.ndarray, points: np.ndarray, pose_cw: np.ndarray,
               threshold: float, keep: object = None, pose_of: Callable[[int], np.ndarray] | None = None
@@ -102,13 +102,13 @@ class TravelCheck:
         if not self.active:
             return None
         seen = landmark >= 0
-        self._views[index], self._kept[index] = (landmark[seen], points[seen], pose_cw), keep
+        self._views[index] = (landmark[seen], points[seen], pose_cw, keep)
         for old in [number for number in self._views if number < index - self.gap]:
-            del self._views[old], self._kept[old]
+            del self._views[old]
         earlier = self._views.get(index - self.gap)
         if earlier is None:
             return None
-        ids_a, points_a, pose_a = earlier
+        ids_a, points_a, pose_a, _ = earlier
         if pose_of is not None:
             pose_a = pose_of(index - self.gap)
         ids_b, points_b = landmark[seen], points[seen]
