@@ -71,6 +71,31 @@ def test_a_map_travelling_45_degrees_off_is_broken_after_its_checks(cloud):
     assert abs(verdicts[first] - 45.0) < 3.0
 
 
+def test_frames_sharing_no_landmarks_are_judged_on_descriptor_matches(cloud):
+    """A car at 10 Hz shares almost no tracked landmarks between frames ten apart: each frame here tracks
+    landmarks under ids of its own, so only the keypoints' descriptors (one unit vector per world point,
+    the rows shuffled per frame) can pair them; with matching off the check never speaks."""
+    points, rng = cloud
+    descriptors = rng.normal(size=(len(points), 64))
+    descriptors /= np.linalg.norm(descriptors, axis=1, keepdims=True)
+    true = [np.array([0.05, 0.0, 0.0]) * i for i in range(30)]
+    turned = [np.array([0.05, 0.0, 0.05]) / np.sqrt(2) * i for i in range(30)]
+
+    def verdicts(match):
+        check = TravelCheck(gap=5, max_deg=20.0, consistency_deg=20.0, frames=5, min_inliers=40, match=match)
+        out = []
+        for index, (centre, tracked) in enumerate(zip(true, turned)):
+            order = rng.permutation(len(points))
+            out.append(check.judge(index, np.arange(len(points)) + 1000 * index, view(points, centre, rng, 0.5)[order],
+                                   pose_cw_at(tracked), 1.0 / FOCAL, descriptors=descriptors[order]))
+        return check, out
+
+    check, found = verdicts((0.9, 0.9))
+    assert check.matched_checks == 25 and abs(found[9] - 45.0) < 3.0
+    check, found = verdicts(None)
+    assert found == [None] * 30 and check.matched_checks == 0 and not check.last_angles
+
+
 def test_an_earlier_pose_the_adjustment_set_right_is_judged_as_it_is_now(cloud):
     """The first five frames were tracked 0.2 off to the side (their travel to the frames five later then looks
     39 deg off), but the adjustment has since moved them where they belong (``pose_of`` gives the pose now):
@@ -146,6 +171,9 @@ def test_off_when_its_gap_is_zero_and_settings_checked():
         VOConfig(travel_check_gap=-1)
     with pytest.raises(VORuntimeError, match="travel_check"):
         VOConfig(travel_check_max_deg=0.0)
+    assert VOConfig().travel_check_match_distance == 0.0  # descriptor-matched checks: opt-in (docs/vo_takeoff.md)
+    with pytest.raises(VORuntimeError, match="travel_check_match_distance"):
+        VOConfig(travel_check_match_distance=-0.1)
 
 
 def test_the_cli_counts_and_names_dropped_maps(shared_data, tmp_path, capsys):
@@ -191,3 +219,44 @@ def test_the_dark_take_off_that_broke_is_abandoned_and_recovers(shared_data):
     assert len(abandoned) == 1 and 35 < abandoned[0] < 80
     report = evaluate(vo.results, sequence_groundtruth(sequence), sequence.layout, sequence.timestamps)
     assert report["ate_rmse_m"] < 0.2
+
+
+def test_on_the_car_the_check_speaks_on_matched_keypoints_and_finds_a_map_travelling_off(shared_data):
+    """KITTI 07 at 10 Hz with the onboard light, from frame 100, noise draw 1: frames ten apart share too few
+    tracked landmarks, so without descriptor matching the check never speaks; with it, it judges most tracked
+    frames and abandons the one map whose direction of travel went wrong: over the ten frames before the
+    verdict the run's own poses travel more than 10 deg off the ground truth's direction (the essential
+    directions 1-3 deg off it), where before them they are within 2 deg."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/ is a folder of scripts
+    from bench.eval_vo import lit_frame
+    from vo_runtime import VisualOdometry
+    from vo_runtime.artefact import default_artefact
+    from vo_runtime.datasets import frame_size, open_sequence
+    from vo_runtime.evaluate import sequence_groundtruth
+    from vo_runtime.sequence import read_frames
+
+    sequence = open_sequence(shared_data / "kitti_odom07_f000000-000159")
+    height, width = frame_size(sequence.camera, sequence.frames)
+    truth = sequence_groundtruth(sequence).poses_se3[100:]
+    images = list(read_frames(sequence.frames[100:]))
+
+    def track(match: bool) -> VisualOdometry:
+        vo = VisualOdometry(default_artefact(width, height), sequence.camera, VOConfig(travel_check_match_distance=0.9 if match else 0.0))
+        for i, image in enumerate(images):
+            vo.track(lit_frame(image, "onboard", 100, i, 1), sequence.timestamps[100 + i])
+        return vo
+
+    assert len(track(False)._travel.last_angles) == 0
+    vo = track(True)
+    tracked = sum(r.status == TRACKING for r in vo.results)
+    assert vo._travel.matched_checks >= 0.4 * tracked
+    dropped = [r.index for r in vo.results if r.map_dropped]
+    assert len(dropped) == 1
+
+    def off_truth(index: int) -> float:  # the run's travel over the ten frames to ``index`` against the truth's
+        ran = vo.results[index].pose[:3, 3] - vo.results[index - 10].pose[:3, 3]
+        true = truth[index][:3, 3] - truth[index - 10][:3, 3]
+        return angle_deg(vo.results[index - 10].pose[:3, :3].T @ ran, truth[index - 10][:3, :3].T @ true)
+
+    assert min(off_truth(i) for i in range(dropped[0] - 3, dropped[0])) > 10.0
+    assert max(off_truth(i) for i in range(20, 30)) < 3.0

@@ -40,7 +40,7 @@ class MapLifecycle:
             return False
         degrees = self._travel.judge(index, landmark, frame.points, pose_cw,
                                      self.config.ransac_threshold_px / self._focal, keep=frame,
-                                     pose_of=self._poses_cw.__getitem__)
+                                     pose_of=self._poses_cw.__getitem__, descriptors=frame.descriptors)
         if degrees is None:
             return False
         self._abandon_map(index, frame, result, degrees)

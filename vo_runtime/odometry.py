@@ -97,8 +97,9 @@ class MonoVO(MapLifecycle, KeyframeUpkeep):
         self.results: list[VOResult] = []
         self._poses_cw: list[np.ndarray] = []        # world-to-camera, one per processed frame
         cfg = self.config
+        match = (cfg.travel_check_match_distance, cfg.match_ratio) if cfg.travel_check_match_distance > 0 else None
         self._travel = TravelCheck(cfg.travel_check_gap, cfg.travel_check_max_deg, cfg.travel_check_consistency_deg,
-                                   cfg.travel_check_frames, cfg.travel_check_min_inliers)
+                                   cfg.travel_check_frames, cfg.travel_check_min_inliers, match)
         self._forget_map()
         self._lost_tries = 0
         self._focal = self.camera.focal              # pixels per normalised unit, in the detector's pixels

@@ -6,7 +6,9 @@ every frame kept 60-150 inliers and said "tracking" (docs/vo_takeoff.md). Rotati
 so the probation's rotation test (`probation.py`) cannot see it; the direction of travel can, and needs no
 scale. Between a tracked frame and the tracked frame ``gap`` frames before it, the landmarks both observed give
 correspondences that an essential matrix fits without the map's 3D points; its translation direction, put in
-the world by the tracked rotation, is compared with the tracked one.
+the world by the tracked rotation, is compared with the tracked one. Where the two frames share too few landmarks
+(a car at 10 Hz turns its local map over: KITTI 07 frames ten apart share a median of 5 tracked landmarks, the
+drone's 86), the two frames' keypoints matched by descriptor (mutual nearest neighbours) stand in for them.
 
 An essential matrix over a short baseline is noise (the take-off's first 2-5 mm: 70-96 deg off the ground
 truth), and a broken map's is not (2-9 deg off, while the map was 40-65 deg off). What tells them apart online
@@ -24,6 +26,7 @@ import cv2
 import numpy as np
 
 from vo_runtime.geometry import camera_centre
+from vo_runtime.matching import match_mutual_nn
 
 MIN_POINTS = 12      # fewer shared landmarks: no check on this frame
 TRACE_CHECKS = 1000  # checks kept in `TravelCheck.last_angles`
@@ -65,16 +68,21 @@ class TravelCheck:
         consistency_deg: largest change of the essential direction between consecutive checks of a verdict.
         frames: consecutive checks a verdict needs.
         min_inliers: essential-matrix inliers a check needs.
+        match: (max L2 distance, Lowe ratio or None) for descriptor-matched correspondences where the shared
+            landmarks give no direction; None: landmarks only.
     """
 
-    def __init__(self, gap: int, max_deg: float, consistency_deg: float, frames: int, min_inliers: int) -> None:
+    def __init__(self, gap: int, max_deg: float, consistency_deg: float, frames: int, min_inliers: int,
+                 match: tuple[float, float | None] | None = None) -> None:
         self.gap, self.max_deg, self.consistency_deg = int(gap), float(max_deg), float(consistency_deg)
-        self.frames, self.min_inliers = int(frames), int(min_inliers)
-        # frame -> (landmark ids, points, pose_cw as tracked, what the caller kept with it for `frame_at`)
-        self._views: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, object]] = {}
+        self.frames, self.min_inliers, self.match = int(frames), int(min_inliers), match
+        # frame -> (landmark ids [N], points [N, 2], descriptors [N, D] or None, pose_cw as tracked, what the
+        # caller kept with it for `frame_at`)
+        self._views: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, object]] = {}
         self._checks: deque[tuple[int, float, np.ndarray]] = deque(maxlen=max(self.frames, 1))
         # (frame, degrees) of the latest checks, for traces; bounded, as a drone flies for hours
         self.last_angles: deque[tuple[int, float]] = deque(maxlen=TRACE_CHECKS)
+        self.matched_checks = 0  # checks whose correspondences came from descriptor matching
 
     @property
     def active(self) -> bool:
@@ -88,32 +96,29 @@ class TravelCheck:
     def frame_at(self, index: int):
         """What `judge` was given as ``keep`` for a frame still in the window (None: none)."""
         view = self._views.get(index)
-        return None if view is None else view[3]
+        return None if view is None else view[4]
 
     def judge(self, index: int, landmark: np.ndarray, points: np.ndarray, pose_cw: np.ndarray,
-              threshold: float, keep: object = None, pose_of: Callable[[int], np.ndarray] | None = None
-              ) -> float | None:
+              threshold: float, keep: object = None, pose_of: Callable[[int], np.ndarray] | None = None,
+              descriptors: np.ndarray | None = None) -> float | None:
         """Add a tracked frame (its keypoints' landmark ids, -1 for none; normalised points; world-to-camera
-        pose; anything to keep with it for `frame_at`) and return the verdict's median disagreement in degrees
+        pose; anything to keep with it for `frame_at`; its keypoints' unit descriptors for matching when the
+        shared landmarks are too few) and return the verdict's median disagreement in degrees
         when the map is broken, else None. ``pose_of(frame)``, when given, is an earlier frame's pose now: the
         bundle adjustment moves the poses of the frames after a new map, and the pose they were tracked at
         disagreed with the frames' geometry by 66-77 deg on a healthy ORB take-off (EuRoC from 10) that the
         adjustment then set right."""
         if not self.active:
             return None
-        seen = landmark >= 0
-        self._views[index] = (landmark[seen], points[seen], pose_cw, keep)
+        # copies: a keyframe's mapping writes new landmark ids into this frame's array after the check
+        self._views[index] = (landmark.copy(), points.copy(), descriptors if self.match else None, pose_cw, keep)
         for old in [number for number in self._views if number < index - self.gap]:
             del self._views[old]
         earlier = self._views.get(index - self.gap)
         if earlier is None:
             return None
-        ids_a, points_a, pose_a, _ = earlier
-        if pose_of is not None:
-            pose_a = pose_of(index - self.gap)
-        ids_b, points_b = landmark[seen], points[seen]
-        _, rows_a, rows_b = np.intersect1d(ids_a, ids_b, assume_unique=False, return_indices=True)
-        direction = essential_direction(points_a[rows_a], points_b[rows_b], threshold, self.min_inliers)
+        pose_a = earlier[3] if pose_of is None else pose_of(index - self.gap)
+        direction = self._direction(earlier, self._views[index], threshold)
         if direction is None:
             return None
         world = pose_a[:3, :3].T @ direction                    # essential travel direction in the world
@@ -130,4 +135,19 @@ class TravelCheck:
             return None
         median = float(np.median([check[1] for check in self._checks]))
         return median if median > self.max_deg else None
+
+    def _direction(self, view_a: tuple, view_b: tuple, threshold: float) -> np.ndarray | None:
+        """The essential direction between two views: on the landmarks both observed, else (``match``) on
+        their keypoints matched by descriptor."""
+        (ids_a, points_a, desc_a, *_), (ids_b, points_b, desc_b, *_) = view_a, view_b
+        seen_a, seen_b = np.flatnonzero(ids_a >= 0), np.flatnonzero(ids_b >= 0)
+        _, rows_a, rows_b = np.intersect1d(ids_a[seen_a], ids_b[seen_b], return_indices=True)
+        direction = essential_direction(points_a[seen_a[rows_a]], points_b[seen_b[rows_b]], threshold,
+                                        self.min_inliers)
+        if direction is not None or desc_a is None or desc_b is None:
+            return direction
+        pairs = match_mutual_nn(desc_a, desc_b, *self.match)
+        direction = essential_direction(points_a[pairs[:, 0]], points_b[pairs[:, 1]], threshold, self.min_inliers)
+        self.matched_checks += direction is not None
+        return direction
 
