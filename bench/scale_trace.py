@@ -31,15 +31,11 @@ from vo_runtime.datasets import frame_size, open_sequence  # noqa: E402
 from vo_runtime.errors import VORuntimeError, first_line  # noqa: E402
 from vo_runtime.evaluate import sequence_groundtruth  # noqa: E402
 from vo_runtime.odometry import TRACKED_STATES  # noqa: E402
+from vo_runtime.probation import rotation_angle_deg  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
 from vo_runtime.travel_check import angle_deg  # noqa: E402
 
 REFERENCE_FRAMES = 20  # tracked frames whose median local scale is 1.0
-
-
-def rotation_error_deg(estimated: np.ndarray, true: np.ndarray) -> float:
-    difference = estimated.T @ true
-    return float(np.degrees(np.arccos(np.clip((np.trace(difference) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def trace(results: list, truth: list[np.ndarray], gap: int) -> list[dict]:
@@ -55,7 +51,7 @@ def trace(results: list, truth: list[np.ndarray], gap: int) -> list[dict]:
         rows.append({"frame": i, "status": result.status, "inliers": result.num_inliers, "keyframe": result.keyframe,
                      "scale": float(np.linalg.norm(estimated[:3, 3])) / max(travel, 1e-9), "travel_m": travel,
                      "direction_deg": angle_deg(estimated[:3, 3], true[:3, 3]),
-                     "rotation_deg": rotation_error_deg(estimated[:3, :3], true[:3, :3])})
+                     "rotation_deg": rotation_angle_deg(estimated[:3, :3].T @ true[:3, :3])})
     if rows:
         reference = float(np.median([r["scale"] for r in rows[:REFERENCE_FRAMES]]))
         for r in rows:
