@@ -120,6 +120,23 @@ def test_dying_chains_do_not_waive_the_ray_angle_gate():
 
 
 
+def test_a_map_built_again_after_a_loss_takes_a_smaller_ray_angle_than_the_first():
+    """The dark take-off lost its map in a turn: 50-96 essential inliers at 1.1-1.9 deg median ray angle for 20
+    frames. A re-initialisation (its scale from the speed before, not from the baseline) accepts such views; the
+    first map still needs init_min_median_deg, as its depths set the run's scale."""
+    initialiser, _ = _views_with_dying_chains((0.15, 0.0, 0.0), 0.0)
+    assert initialiser.try_initialise(2, [np.eye(4)] * 3, None) is None  # a first map: refused
+    initialiser, _ = _views_with_dying_chains((0.15, 0.0, 0.0), 0.0)
+    result = initialiser.try_initialise(2, [np.eye(4)] * 3, 0.05)  # after a loss, at 0.05 units a frame
+    assert result is not None
+    median = float(np.median(result.angles))
+    assert VOConfig().reinit_min_median_deg <= median < VOConfig().init_min_median_deg
+    assert abs(result.speed - 0.05) < 1e-12  # the scale is the speed's
+    initialiser, _ = _views_with_dying_chains((0.15, 0.0, 0.0), 0.0)
+    initialiser.config = VOConfig(reinit_min_median_deg=2.0)
+    assert initialiser.try_initialise(2, [np.eye(4)] * 3, 0.05) is None  # the old gate refused it
+
+
 def _near_and_far(near: int, far: int, survivors: int | None = None) -> Initialiser:
     """Reference, a frame halfway and the current view (a 0.5-unit step and a 3 deg turn) of ``near`` points
     4-8 units away and ``far`` points 500-1000 away (too little ray angle for a landmark); with ``survivors``

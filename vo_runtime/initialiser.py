@@ -140,7 +140,7 @@ class Initialiser:
         if len(best) > 1 and best[1][0] > 0.75 * best[0][0]:
             return None  # ambiguous homography decomposition: wait for more motion
         _, self.model, pose, inliers, world, angles, good = best[0]
-        if np.median(angles[good]) < cfg.init_min_median_deg:
+        if np.median(angles[good]) < (cfg.init_min_median_deg if speed is None else cfg.reinit_min_median_deg):
             return None  # a short baseline: depths from it would set a poor first scale and map
         poses_cw[index] = pose
         landmark_rows = inliers[good]
