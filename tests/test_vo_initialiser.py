@@ -137,15 +137,15 @@ def test_a_map_built_again_after_a_loss_takes_a_smaller_ray_angle_than_the_first
     assert initialiser.try_initialise(2, [np.eye(4)] * 3, 0.05) is None  # the old gate refused it
 
 
-def _near_and_far(near: int, far: int, survivors: int | None = None) -> Initialiser:
-    """Reference, a frame halfway and the current view (a 0.5-unit step and a 3 deg turn) of ``near`` points
+def _near_and_far(near: int, far: int, survivors: int | None = None, turn_deg: float = 3.0) -> Initialiser:
+    """Reference, a frame halfway and the current view (a 0.5-unit step and a ``turn_deg`` turn) of ``near`` points
     4-8 units away and ``far`` points 500-1000 away (too little ray angle for a landmark); with ``survivors``
     only that many chains hold through the middle frame (dying tracks, the rest resumed from the reference)."""
     rng = np.random.default_rng(3)
     count = near + far
     depth = np.r_[rng.uniform(4, 8, near), rng.uniform(500, 1000, far)]
     world = np.column_stack([rng.uniform(-0.6, 0.6, count) * depth, rng.uniform(-0.4, 0.4, count) * depth, depth])
-    angle = np.radians(3.0)
+    angle = np.radians(turn_deg)
     rotation = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
     views = [world, (world + world @ rotation.T + (0.5, 0.05, 0.1)) / 2, world @ rotation.T + (0.5, 0.05, 0.1)]
     points = [view[:, :2] / view[:, 2:] for view in views]
@@ -175,3 +175,20 @@ def test_healthy_tracks_wait_for_the_wanted_landmarks_and_dying_ones_do_not():
     # Healthy tracks with 120 landmarks: a map at once.
     result = _near_and_far(120, 20).try_initialise(2, poses, None)
     assert result is not None and len(result.world) >= 100
+
+
+def test_a_re_initialisation_measures_again_from_a_frame_turned_far_from_its_reference():
+    """KITTI 07 in the dark lost its first map while turning: 10-37 deg from the frame of the loss, the tracks
+    kept matching but too few points triangulated, for 20 frames, where a fresh reference gave a map at once.
+    Views 30 deg apart with 20 of 80 points well triangulated (40 wanted): a re-initialisation restarts from this frame;
+    a first map, a 3 deg turn, or the rule off keep the reference."""
+    poses = [np.eye(4)] * 3
+    initialiser = _near_and_far(20, 60, turn_deg=30.0)
+    assert initialiser.try_initialise(2, poses, 0.05) is None and initialiser.reference == 2
+    initialiser = _near_and_far(20, 60, turn_deg=30.0)
+    assert initialiser.try_initialise(2, poses, None) is None and initialiser.reference == 0
+    initialiser = _near_and_far(20, 60, turn_deg=3.0)
+    assert initialiser.try_initialise(2, poses, 0.05) is None and initialiser.reference == 0
+    initialiser = _near_and_far(20, 60, turn_deg=30.0)
+    initialiser.config = VOConfig(reinit_max_turn_deg=0.0)
+    assert initialiser.try_initialise(2, poses, 0.05) is None and initialiser.reference == 0

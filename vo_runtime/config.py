@@ -33,6 +33,11 @@ class VOConfig:
     # noise draws: lost frames on the drone clip 79 -> 33 (dark), 14 -> 8 (onboard), ATE 0.99x / 0.97x; every
     # KITTI, TUM and normal-light learned run identical; ORB gained too (docs/vo_takeoff.md).
     reinit_min_median_deg: float = 1.0
+    # A re-initialisation whose reference the camera has turned more than this away from (the two-view
+    # rotation), and which still lacks its landmarks, measures from the current frame instead (0: never).
+    # KITTI 07 in a turn waited 20 frames on a reference it turned 10-37 deg away from (2.17 -> 0.52 m); the
+    # drone's turns stay under 21 deg; every other dev run identical (docs/vo_takeoff.md).
+    reinit_max_turn_deg: float = 25.0
     init_min_landmarks: int = 40         # triangulated points an initialisation must produce ...
     # ... or this many while the tracks from the reference are not dying (as the parallax gate relaxes only
     # for dying tracks). Off (= init_min_landmarks) by default: 100 cured the drone's weak mid-flight first maps

@@ -14,6 +14,7 @@ import numpy as np
 from vo_runtime.features import Features
 from vo_runtime.geometry import make_pose, ray_angles, triangulate
 from vo_runtime.matching import match_mutual_nn
+from vo_runtime.probation import rotation_angle_deg
 from vo_runtime.tracking import FrameData
 from vo_runtime.tracks import Tracks
 from vo_runtime.twoview import relative_pose_hypotheses
@@ -134,6 +135,12 @@ class Initialiser:
             best.append((int(np.count_nonzero(good)), hypothesis.model, pose, inliers, world, angles, good))
         best.sort(key=lambda item: -item[0])
         if not best or best[0][0] < cfg.init_min_landmarks:
+            if best and speed is not None and 0 < cfg.reinit_max_turn_deg < \
+                    rotation_angle_deg(best[0][2][:3, :3] @ ref_pose[:3, :3].T):
+                # A re-initialisation's reference the camera has turned away from: its tracks still match,
+                # but few of them triangulate well, and they only get fewer. Measure from this frame instead.
+                poses_cw[index] = poses_cw[self.reference].copy()
+                self.restart(index, frame)
             return None
         if best[0][0] < cfg.init_wanted_landmarks and not dying:
             return None  # a richer first map may come with a few more frames of motion
