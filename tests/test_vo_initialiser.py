@@ -180,8 +180,8 @@ def test_healthy_tracks_wait_for_the_wanted_landmarks_and_dying_ones_do_not():
 def test_a_re_initialisation_measures_again_from_a_frame_turned_far_from_its_reference():
     """KITTI 07 in the dark lost its first map while turning: 10-37 deg from the frame of the loss, the tracks
     kept matching but too few points triangulated, for 20 frames, where a fresh reference gave a map at once.
-    Views 30 deg apart with 20 of 80 points well triangulated (40 wanted): a re-initialisation restarts from this frame;
-    a first map, a 3 deg turn, or the rule off keep the reference."""
+    Views 30 deg apart with 20 of 80 points well triangulated (40 wanted): a re-initialisation restarts from this
+    frame; a first map, a 3 deg turn, or the rule off keep the reference."""
     poses = [np.eye(4)] * 3
     initialiser = _near_and_far(20, 60, turn_deg=30.0)
     assert initialiser.try_initialise(2, poses, 0.05) is None and initialiser.reference == 2

@@ -241,7 +241,8 @@ def test_on_the_car_the_check_speaks_on_matched_keypoints_and_finds_a_map_travel
     images = list(read_frames(sequence.frames[100:]))
 
     def track(match: bool) -> VisualOdometry:
-        vo = VisualOdometry(default_artefact(width, height), sequence.camera, VOConfig(travel_check_match_distance=0.9 if match else 0.0))
+        config = VOConfig(travel_check_match_distance=0.9 if match else 0.0)
+        vo = VisualOdometry(default_artefact(width, height), sequence.camera, config)
         for i, image in enumerate(images):
             vo.track(lit_frame(image, "onboard", 100, i, 1), sequence.timestamps[100 + i])
         return vo

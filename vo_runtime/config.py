@@ -105,7 +105,7 @@ class VOConfig:
     # Where the two frames share too few landmarks for a direction (a car at 10 Hz), their keypoints matched
     # by descriptor (mutual nearest neighbours within this L2 distance, match_ratio) can give the
     # correspondences instead: 0.9 (tracking's distance) judges 75 % of KITTI 07's tracked frames instead of
-    # 3 %, and every map it abandoned on the dev data travelled 17-27 deg off the true direction, but the ATE
+    # 3 %, and every learned map it abandoned that was traced travelled 20-27 deg off the true direction, but the ATE
     # moved both ways (maps built again at a guessed scale) and a check costs ~10 ms on the car (USAC on
     # ~100 matches with many outliers): off (0) until a rebuilt map keeps its scale (docs/vo_takeoff.md).
     travel_check_match_distance: float = 0.0

@@ -53,6 +53,11 @@ class Initialiser:
         self.reference, self._reference_frame = index, frame
         self._previous = (frame, Tracks(index, frame.points, frame.pixels))
 
+    def _measure_from(self, index: int, frame: FrameData, poses_cw: list[np.ndarray]) -> None:
+        """Give up the reference: this frame, at the reference's pose, is the next one."""
+        poses_cw[index] = poses_cw[self.reference].copy()
+        self.restart(index, frame)
+
     def add(self, index: int, frame: FrameData, features: Features | None = None) -> int:
         """Extend the tracks with this frame; returns the frame-to-frame matches."""
         if self._previous is None:
@@ -103,9 +108,7 @@ class Initialiser:
         # never keep an old reference alive, nor its short-baseline gate in force.
         chained = int(np.count_nonzero(~tracks.resumed[rows]))
         if chained < cfg.min_matches:
-            # Too few tracks survive from the reference: measure from this frame instead.
-            poses_cw[index] = poses_cw[self.reference].copy()
-            self.restart(index, frame)
+            self._measure_from(index, frame, poses_cw)  # too few tracks survive from the reference
             return None
         motion = np.median(np.linalg.norm(tracks.pixels[rows] - tracks.first_pixels[rows], axis=1))
         # Tracks from the reference die off, and the survivors are the slow, distant points: when few are
@@ -138,9 +141,8 @@ class Initialiser:
             if best and speed is not None and 0 < cfg.reinit_max_turn_deg < \
                     rotation_angle_deg(best[0][2][:3, :3] @ ref_pose[:3, :3].T):
                 # A re-initialisation's reference the camera has turned away from: its tracks still match,
-                # but few of them triangulate well, and they only get fewer. Measure from this frame instead.
-                poses_cw[index] = poses_cw[self.reference].copy()
-                self.restart(index, frame)
+                # but few of them triangulate well, and they only get fewer.
+                self._measure_from(index, frame, poses_cw)
             return None
         if best[0][0] < cfg.init_wanted_landmarks and not dying:
             return None  # a richer first map may come with a few more frames of motion

@@ -110,7 +110,7 @@ class TravelCheck:
         adjustment then set right."""
         if not self.active:
             return None
-        # copies: a keyframe's mapping writes new landmark ids into this frame's array after the check
+        # snapshots, as the frame was judged: the caller's arrays are its own to change later
         self._views[index] = (landmark.copy(), points.copy(), descriptors if self.match else None, pose_cw, keep)
         for old in [number for number in self._views if number < index - self.gap]:
             del self._views[old]
