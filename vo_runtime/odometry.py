@@ -47,8 +47,9 @@ import numpy as np
 from vo_runtime.background import Background
 from vo_runtime.camera import Camera
 from vo_runtime.config import Extraction, VOConfig, VOResult
-from vo_runtime.errors import CalibrationError, FrameError, VORuntimeError
-from vo_runtime.features import FeatureExtractor, Features, check_frame, detector_pixel, to_gray_u8
+from vo_runtime.errors import CalibrationError, VORuntimeError
+from vo_runtime.features import FeatureExtractor, Features, detector_pixel, to_gray_u8
+from vo_runtime.frame_intake import FrameIntake
 from vo_runtime.geometry import camera_centre, invert_pose
 from vo_runtime.initialiser import Initialiser
 from vo_runtime.keyframing import KeyframeUpkeep
@@ -60,13 +61,12 @@ from vo_runtime.relocalise import relocalise
 from vo_runtime.single_caller import SingleCaller, single_caller
 from vo_runtime.states import (INITIALISING, LOST, REINITIALISED, RELOCALISED, SKIPPED,  # noqa: F401 (public names)
                                TRACKED_STATES, TRACKING)
-from vo_runtime.timestamps import checked_timestamp
 from vo_runtime.tracking import RELOCALISATION, FrameData, TrackingSettings, guided_pose, refit_pose, track_frame
 from vo_runtime.travel_check import TravelCheck
 
 
 
-class MonoVO(MapLifecycle, KeyframeUpkeep):
+class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
     """Monocular VO over a stream of frames.
 
     Args:
@@ -174,30 +174,6 @@ class MonoVO(MapLifecycle, KeyframeUpkeep):
 
         return track_stream(self, frames, ahead, skip_wrong_size)
 
-    def extract(self, image: np.ndarray | None) -> Extraction:
-        """Check one frame and run the extractor on it. It reads and writes no state of the VO, so `stream`
-        runs it on a worker thread; `process_extraction` then tracks the frame."""
-        return self._unusable(image) or self._run_extractor(image)
-
-    @staticmethod
-    def _unusable(image: np.ndarray | None) -> Extraction | None:
-        """The frame as an unusable `Extraction` when `check_frame` refuses it, else None."""
-        if image is not None and not isinstance(image, np.ndarray):
-            raise FrameError(f"expected an HxW or HxWx3 image array, got {type(image).__name__}")
-        try:
-            check_frame(image)
-        except FrameError as exc:
-            return Extraction(image, None, str(exc), usable=False)
-        return None
-
-    def _run_extractor(self, image: np.ndarray) -> Extraction:
-        start = time.perf_counter()
-        try:
-            features = self.extractor(image)
-        except FrameError as exc:  # e.g. an extractor whose resize policy rejects this size
-            return Extraction(image, None, str(exc))
-        return Extraction(image, features, seconds=time.perf_counter() - start)
-
     @single_caller
     def process_extraction(self, extraction: Extraction, timestamp: float | None = None) -> VOResult:
         """Track a frame whose features `extract` found (see `process`)."""
@@ -247,10 +223,6 @@ class MonoVO(MapLifecycle, KeyframeUpkeep):
         self.results.append(result)
         return result
 
-    def _checked_timestamp(self, timestamp: float | None) -> float | None:
-        """`TimestampError` (nothing changed) unless the stamp is None or finite and after the last frame's."""
-        return checked_timestamp(timestamp, self.results[-1].timestamp if self.results else None)
-
     def _set_pixel_unit(self, pixel: float) -> None:
         """Pixel thresholds are in detector pixels (``pixel`` frame pixels each); with patch alignment the
         keypoints are ``align_gain`` times more precise, and the thresholds tighten with them."""
@@ -263,14 +235,6 @@ class MonoVO(MapLifecycle, KeyframeUpkeep):
             self._mapping_config = replace(cfg.mapping, min_parallax_px=cfg.mapping.aligned_min_parallax_px)
         self._focal = self.camera.focal / pixel
         self._initialiser.focal = self._focal
-
-    def _check_size(self, height: int, width: int) -> None:
-        """Intrinsics fit one frame size: the calibration's, or when it names none, the first frame's."""
-        self.camera.check_frame(height, width)
-        if self._frame_size is not None and (height, width) != self._frame_size:
-            raise CalibrationError(f"frame is {width}x{height} but this sequence's frames are "
-                                   f"{self._frame_size[1]}x{self._frame_size[0]} (the size of its first frame, "
-                                   "which the intrinsics were bound to: an odd first frame misfits all the others)")
 
     # ------------------------------------------------------------------ states
     def _track(self, index: int, features: Features, result: VOResult, image: np.ndarray) -> None:
