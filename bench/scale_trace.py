@@ -36,6 +36,28 @@ from vo_runtime.sequence import read_frames  # noqa: E402
 from vo_runtime.travel_check import angle_deg  # noqa: E402
 
 REFERENCE_FRAMES = 20  # tracked frames whose median local scale is 1.0
+MAX_STAMP_GAP_S = 0.02  # a frame's ground truth: the sample nearest its timestamp, at most this far
+
+
+def truth_at_frames(groundtruth, stamps: list[float]) -> list[np.ndarray]:
+    """The ground-truth camera pose of each frame: the trajectory's own rows when it has one per frame (KITTI's
+    poses.txt, EuRoC's poses associated on loading), else its sample nearest each frame's timestamp (TUM's
+    groundtruth.txt is the motion capture's ~100 Hz stream, not one pose per frame)."""
+    poses = list(groundtruth.poses_se3)
+    if len(poses) == len(stamps):
+        return poses
+    times = np.asarray(groundtruth.timestamps, np.float64)
+    order = np.argsort(times, kind="stable")
+    times = times[order]
+    wanted = np.asarray(stamps, np.float64)
+    after = np.clip(np.searchsorted(times, wanted), 1, len(times) - 1)
+    nearest = np.where(np.abs(times[after - 1] - wanted) <= np.abs(times[after] - wanted), after - 1, after)
+    gaps = np.abs(times[nearest] - wanted)
+    if np.any(gaps > MAX_STAMP_GAP_S):
+        frame = int(np.argmax(gaps))
+        raise VORuntimeError(f"frame {frame}: no ground-truth pose within {1e3 * MAX_STAMP_GAP_S:.0f} ms of its "
+                             f"timestamp (nearest {1e3 * gaps[frame]:.0f} ms)")
+    return [poses[order[k]] for k in nearest]
 
 
 def trace(results: list, truth: list[np.ndarray], gap: int) -> list[dict]:
@@ -88,8 +110,7 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= args.start < len(sequence.frames) - args.gap:
         raise VORuntimeError(f"--start {args.start}: the sequence has {len(sequence.frames)} frames")
     frames, stamps = sequence.frames[args.start:], sequence.timestamps[args.start:]
-    truth_all = sequence_groundtruth(sequence).poses_se3
-    truth = list(truth_all[args.start:])
+    truth = truth_at_frames(sequence_groundtruth(sequence), sequence.timestamps)[args.start:]
     if args.features == "orb":
         extractor = OrbExtractor(2000)
     else:

@@ -82,3 +82,45 @@ def test_a_negative_noise_draw_is_one_error_line(shared_data):
                          capture_output=True, text=True, timeout=120)
     lines = run.stderr.strip().splitlines()
     assert run.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: --seed -1")
+
+
+def test_a_denser_ground_truth_is_taken_at_the_frames_timestamps():
+    # A motion-capture stream at 100 Hz (x = its time in metres) and frames at 10 Hz between its samples: each
+    # frame gets the nearest sample, not the stream's k-th row; a frame 50 ms from any sample is refused.
+    from evo.core.trajectory import PoseTrajectory3D
+
+    from bench.scale_trace import truth_at_frames
+    from vo_runtime.errors import VORuntimeError
+
+    times = np.arange(0.0, 3.0, 0.01)
+    stream = PoseTrajectory3D(poses_se3=[_pose(t) for t in times], timestamps=times)
+    frames = [0.504, 0.6031, 0.7, 1.2996]
+    picked = truth_at_frames(stream, frames)
+    assert [round(p[0, 3], 2) for p in picked] == [0.5, 0.6, 0.7, 1.3]
+    assert len(truth_at_frames(PoseTrajectory3D(poses_se3=[_pose(t) for t in times[:4]], timestamps=times[:4]),
+                               [5.0, 6.0, 7.0, 8.0])) == 4  # one pose a frame (KITTI, EuRoC): taken as it is
+    with pytest.raises(VORuntimeError, match="frame 1: no ground-truth pose within 20 ms"):
+        truth_at_frames(stream, [0.5, 3.05])
+
+
+def test_tums_trace_measures_travel_between_the_frames_poses(shared_data):
+    # TUM's groundtruth.txt is the mocap stream: the traced true travel over two frames is the distance
+    # between the stream's samples at those frames' timestamps (~20 mm a frame at 10 Hz), not between rows.
+    from vo_runtime.datasets import open_sequence
+    from vo_runtime.evaluate import sequence_groundtruth
+
+    sequence = shared_data / "tum_fr2_desk_snippet"
+    run = subprocess.run([sys.executable, str(ROOT / "bench" / "scale_trace.py"), "--sequence", str(sequence),
+                          "--every", "1", "--gap", "1"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    traced = {int(cells[0]): float(cells[-1]) for cells in
+              (line.split() for line in run.stdout.splitlines()[2:] if line.strip())}
+    opened = open_sequence(sequence)
+    truth = sequence_groundtruth(opened)
+    times = np.asarray(truth.timestamps)
+    at = [int(np.argmin(np.abs(times - stamp))) for stamp in opened.timestamps]
+    assert len(traced) >= 10
+    for frame, travel_mm in traced.items():
+        expected = np.linalg.norm(truth.positions_xyz[at[frame]] - truth.positions_xyz[at[frame - 1]])
+        assert travel_mm == pytest.approx(1e3 * expected, abs=0.06)
+    assert np.median(list(traced.values())) > 10.0
