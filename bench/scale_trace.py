@@ -33,6 +33,7 @@ from vo_runtime.evaluate import sequence_groundtruth  # noqa: E402
 from vo_runtime.odometry import TRACKED_STATES  # noqa: E402
 from vo_runtime.probation import rotation_angle_deg  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
+from vo_runtime.timestamps import nearest_samples  # noqa: E402
 from vo_runtime.travel_check import angle_deg  # noqa: E402
 
 REFERENCE_FRAMES = 20  # tracked frames whose median local scale is 1.0
@@ -40,23 +41,17 @@ MAX_STAMP_GAP_S = 0.02  # a frame's ground truth: the sample nearest its timesta
 
 
 def truth_at_frames(groundtruth, stamps: list[float]) -> list[np.ndarray]:
-    """The ground-truth camera pose of each frame: the trajectory's own rows when it has one per frame (KITTI's
-    poses.txt, EuRoC's poses associated on loading), else its sample nearest each frame's timestamp (TUM's
-    groundtruth.txt is the motion capture's ~100 Hz stream, not one pose per frame)."""
-    poses = list(groundtruth.poses_se3)
-    if len(poses) == len(stamps):
-        return poses
+    """The ground-truth camera pose of each frame: the sample nearest its timestamp. TUM's groundtruth.txt is the
+    motion capture's ~100 Hz stream, not one pose per frame; KITTI's and EuRoC's trajectories are stamped with
+    the frames' own timestamps, so each frame finds its own row."""
     times = np.asarray(groundtruth.timestamps, np.float64)
     order = np.argsort(times, kind="stable")
-    times = times[order]
-    wanted = np.asarray(stamps, np.float64)
-    after = np.clip(np.searchsorted(times, wanted), 1, len(times) - 1)
-    nearest = np.where(np.abs(times[after - 1] - wanted) <= np.abs(times[after] - wanted), after - 1, after)
-    gaps = np.abs(times[nearest] - wanted)
+    nearest, gaps = nearest_samples(times[order], stamps)
     if np.any(gaps > MAX_STAMP_GAP_S):
         frame = int(np.argmax(gaps))
         raise VORuntimeError(f"frame {frame}: no ground-truth pose within {1e3 * MAX_STAMP_GAP_S:.0f} ms of its "
                              f"timestamp (nearest {1e3 * gaps[frame]:.0f} ms)")
+    poses = groundtruth.poses_se3
     return [poses[order[k]] for k in nearest]
 
 

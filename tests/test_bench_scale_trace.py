@@ -97,8 +97,11 @@ def test_a_denser_ground_truth_is_taken_at_the_frames_timestamps():
     frames = [0.504, 0.6031, 0.7, 1.2996]
     picked = truth_at_frames(stream, frames)
     assert [round(p[0, 3], 2) for p in picked] == [0.5, 0.6, 0.7, 1.3]
-    assert len(truth_at_frames(PoseTrajectory3D(poses_se3=[_pose(t) for t in times[:4]], timestamps=times[:4]),
-                               [5.0, 6.0, 7.0, 8.0])) == 4  # one pose a frame (KITTI, EuRoC): taken as it is
+    # One pose a frame, stamped with the frames' own stamps (KITTI, EuRoC): each frame gets its own row.
+    per_frame = [_pose(10.0 * k) for k in range(4)]
+    own = truth_at_frames(PoseTrajectory3D(poses_se3=per_frame, timestamps=np.array([5.0, 6.0, 7.0, 8.0])),
+                          [5.0, 6.0, 7.0, 8.0])
+    assert [p[0, 3] for p in own] == [0.0, 10.0, 20.0, 30.0]
     with pytest.raises(VORuntimeError, match="frame 1: no ground-truth pose within 20 ms"):
         truth_at_frames(stream, [0.5, 3.05])
 

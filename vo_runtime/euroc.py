@@ -24,6 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from vo_runtime.camera import Camera
 from vo_runtime.errors import CalibrationError, VORuntimeError
+from vo_runtime.timestamps import nearest_samples
 
 MAX_ASSOCIATION_S = 0.005  # a frame takes the nearest ground-truth pose within 5 ms (EuRoC's is at 200 Hz)
 GROUNDTRUTH_DIR = "state_groundtruth_estimate0"
@@ -182,9 +183,8 @@ def camera_groundtruth(path: str | Path, body_from_camera: np.ndarray, frame_tim
     and poses of those that have one; `VORuntimeError` when none has."""
     stamps, body_poses = read_body_groundtruth(path)
     frame_times = np.asarray(frame_times, np.float64)
-    after = np.clip(np.searchsorted(stamps, frame_times), 1, len(stamps) - 1)
-    nearest = np.where(np.abs(stamps[after - 1] - frame_times) <= np.abs(stamps[after] - frame_times), after - 1, after)
-    close = np.abs(stamps[nearest] - frame_times) <= max_difference
+    nearest, gaps = nearest_samples(stamps, frame_times)
+    close = gaps <= max_difference
     if not np.any(close):
         raise VORuntimeError(f"{path}: no ground-truth pose within {1e3 * max_difference:.0f} ms of any frame "
                              f"(frames {frame_times[0]:.3f}-{frame_times[-1]:.3f} s, ground truth "

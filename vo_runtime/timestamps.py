@@ -43,3 +43,12 @@ def check_timestamps(stamps: Sequence[float], source: str) -> None:
         what = "repeats" if values[index + 1] == values[index] else "goes back from"
         raise TimestampError(f"{source}: timestamp {index + 2} ({float(values[index + 1])!r}) {what} "
                              f"{float(values[index])!r}: timestamps must increase")
+
+
+def nearest_samples(sample_times: np.ndarray, wanted: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """For each of ``wanted``, the index of the nearest of ``sample_times`` (sorted, at least two) and how far it
+    is (seconds): how a frame finds its pose in a denser ground-truth stream."""
+    wanted = np.asarray(wanted, np.float64)
+    after = np.clip(np.searchsorted(sample_times, wanted), 1, len(sample_times) - 1)
+    nearest = np.where(np.abs(sample_times[after - 1] - wanted) <= np.abs(sample_times[after] - wanted), after - 1, after)
+    return nearest, np.abs(sample_times[nearest] - wanted)
