@@ -12,6 +12,7 @@ import numpy as np
 
 from vo_runtime.config import VOResult
 from vo_runtime.geometry import invert_pose
+from vo_runtime.keyframe_pose import epipolar_matches, refine_with_epipolar
 from vo_runtime.localmap import Keyframe
 from vo_runtime.mapping import (cull_landmarks, local_bundle_adjustment, observe_in_neighbours, refresh_landmarks,
                                 triangulate_new_landmarks)
@@ -54,6 +55,10 @@ class KeyframeUpkeep:
         """New landmarks, local bundle adjustment and culling for keyframe ``number``."""
         cfg, mapping, focal = self.config, self._mapping_config, self._focal
         start = time.perf_counter()
+        # Not while the first map is on probation: the probation judges the map that tracking built, and a
+        # broken map whose keyframes were corrected passed it and then failed in the turn (docs/vo_takeoff.md).
+        if mapping.keyframe_epipolar_weight > 0 and number > 0 and not self._probation.active:
+            self._refine_keyframe_pose(number)
         refresh_landmarks(self.map, number, mapping, focal)
         triangulate_new_landmarks(self.map, number, mapping, focal, cfg.match_max_distance, cfg.match_ratio,
                                   self._align if self._aligner is not None else None, self._detection_scale)
@@ -65,6 +70,22 @@ class KeyframeUpkeep:
         self._previous = (frame, keyframe.landmark)  # the adjustment may have dropped observations
         self._set_reference(number)
         result.mapping_ms = 1e3 * (time.perf_counter() - start)
+
+    def _refine_keyframe_pose(self, number: int) -> None:
+        """The new keyframe's pose on its landmarks and its epipolar geometry to the previous keyframe
+        (`keyframe_pose.py`); frames anchored to it follow."""
+        cfg, mapping, focal = self.config, self._mapping_config, self._focal
+        new, previous = self.map.keyframes[number], self.map.keyframes[number - 1]
+        rows = np.flatnonzero(new.landmark >= 0)
+        points_a, points_b = epipolar_matches(previous.points, previous.descriptors, new.points, new.descriptors,
+                                              previous.pose_cw, new.pose_cw, mapping.keyframe_epipolar_gate_px / focal,
+                                              cfg.match_max_distance, cfg.match_ratio)
+        if len(rows) < cfg.min_pnp_inliers or len(points_a) < cfg.min_pnp_inliers:
+            return
+        new.pose_cw = refine_with_epipolar(new.pose_cw, self.map.positions[new.landmark[rows]], new.points[rows],
+                                           previous.pose_cw, points_a, points_b,
+                                           mapping.keyframe_epipolar_scale_px / focal, mapping.keyframe_epipolar_weight)
+        self._follow_keyframe(number)
 
     def _align(self, source, target, source_rows: np.ndarray, target_rows: np.ndarray) -> None:
         align_rows(self._aligner, source, target, source_rows, target_rows, self.camera.normalise)

@@ -79,10 +79,23 @@ class MappingConfig:
     # noise draws: 0.274 -> 0.346 m, 32 frames lost in its sharp turn; onboard level; docs/vo_takeoff.md).
     neighbour_keyframes: int = 0
     neighbour_radius_px: float = 3.0
+    # A new keyframe's pose refined on its landmarks and on the Sampson distances of its descriptor matches with
+    # the previous keyframe (`keyframe_pose.py`), before it triangulates: the matches' weight against a
+    # landmark's (0: off), the gate on those matches under the tracked poses, and the robust loss's scale.
+    # Off: the drone's 80 take-off runs (starts 0-15 x 10 noise draws), weight 1 against 0: dark 0.87x [0.71,
+    # 1.10], onboard 1.11x [0.97, 1.25]; refined during the first map's probation too 0.79x / 1.30x; with the
+    # refined rotation kept in the bundle adjustment 1.16x / 1.27x (docs/vo_takeoff.md).
+    keyframe_epipolar_weight: float = 0.0
+    keyframe_epipolar_gate_px: float = 20.0
+    keyframe_epipolar_scale_px: float = 1.5
 
     def __post_init__(self) -> None:
         if self.neighbour_keyframes < 0 or self.neighbour_radius_px <= 0:
             raise VORuntimeError("mapping.neighbour_keyframes must be >= 0 and mapping.neighbour_radius_px > 0")
+        if self.keyframe_epipolar_weight < 0 or self.keyframe_epipolar_gate_px <= 0 \
+                or self.keyframe_epipolar_scale_px <= 0:
+            raise VORuntimeError("mapping.keyframe_epipolar_weight must be >= 0, keyframe_epipolar_gate_px and "
+                                 "keyframe_epipolar_scale_px > 0")
 
 
 def min_angle(config: MappingConfig, focal: float) -> float:
