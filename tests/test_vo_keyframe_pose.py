@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from vo_runtime.errors import VORuntimeError
-from vo_runtime.geometry import camera_centre, make_pose
-from vo_runtime.keyframe_pose import epipolar_matches, perturbed, refine_with_epipolar, sampson_distances
+from vo_runtime.geometry import camera_centre, left_increment, make_pose
+from vo_runtime.keyframe_pose import epipolar_matches, refine_with_epipolar, sampson_distances
 from vo_runtime.mapping import MappingConfig, essential_between
 from vo_runtime.pose import refine_pose
 from vo_runtime.probation import rotation_angle_deg
@@ -78,7 +78,7 @@ def test_the_epipolar_terms_fix_the_rotation_that_bunched_landmarks_trade_for_tr
         pose_a, pose_b, near, far = scene(rng)
         observed = noisy(project(pose_b, near), rng)
         # tracking's pose: the landmarks' own refinement from a start 0.7 deg off in rotation
-        start = perturbed(pose_b, np.r_[np.radians(0.7) * np.array([1.0, 0.0, 0.0]), np.zeros(3)])
+        start = left_increment(pose_b, np.r_[np.radians(0.7) * np.array([1.0, 0.0, 0.0]), np.zeros(3)])
         tracked, _ = refine_pose(near, observed, start, 3.0 / FOCAL, 20)
         points_a, points_b = noisy(project(pose_a, far), rng), noisy(project(pose_b, far), rng)
         refined = refine_with_epipolar(tracked, near, observed, pose_a, points_a, points_b, 1.5 / FOCAL)

@@ -17,7 +17,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
 
-from vo_runtime.geometry import make_pose
+from vo_runtime.geometry import left_increment
 
 
 @dataclass
@@ -105,7 +105,6 @@ def bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.ndarray, 
     deltas = solution.x[: 6 * n_free].reshape(n_free, 6)
     refined = list(poses_cw[:n_fixed])
     for pose, delta in zip(poses_cw[n_fixed:], deltas):
-        step = cv2.Rodrigues(delta[:3])[0]
-        refined.append(make_pose(step @ pose[:3, :3], step @ pose[:3, 3] + delta[3:]))
+        refined.append(left_increment(pose, delta))
     return BundleResult(refined, solution.x[6 * n_free:].reshape(-1, 3), np.linalg.norm(final, axis=1),
                         float(np.sum(start ** 2)), float(np.sum(final ** 2)))

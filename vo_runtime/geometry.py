@@ -22,6 +22,13 @@ def pose_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
 
 
 
+def left_increment(pose: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """``pose`` [4, 4] (world-to-camera) moved by a left increment ``delta`` = (rotation vector, translation) [6]:
+    cam = Exp(w) (R X + t) + tau, the update the bundle adjustments and `keyframe_pose` solve for."""
+    step = cv2.Rodrigues(np.asarray(delta[:3], np.float64).reshape(3, 1))[0]
+    return make_pose(step @ pose[:3, :3], step @ pose[:3, 3] + delta[3:])
+
+
 def rvec_from_pose(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """4x4 world-to-camera pose -> OpenCV (rvec [3, 1], tvec [3, 1])."""
     return cv2.Rodrigues(pose[:3, :3])[0], pose[:3, 3].reshape(3, 1).copy()

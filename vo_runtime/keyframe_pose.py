@@ -11,10 +11,9 @@ cannot, while the landmarks keep the translation and the scale.
 """
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
-from vo_runtime.geometry import make_pose
+from vo_runtime.geometry import left_increment
 from vo_runtime.mapping import essential_between
 from vo_runtime.matching import match_mutual_nn
 
@@ -38,12 +37,6 @@ def _sampson(essential: np.ndarray, homogeneous_a: np.ndarray, homogeneous_b: np
 def sampson_distances(essential: np.ndarray, points_a: np.ndarray, points_b: np.ndarray) -> np.ndarray:
     """Signed first-order distances [N] of matches ``points_a`` -> ``points_b`` (normalised [N, 2]) from ``essential``."""
     return _sampson(essential, _homogeneous(points_a), _homogeneous(points_b))
-
-
-def perturbed(pose: np.ndarray, delta: np.ndarray) -> np.ndarray:
-    """``pose`` [4, 4] moved by a left increment ``delta`` = (rotation vector, translation) [6]."""
-    rotation = cv2.Rodrigues(delta[:3].reshape(3, 1))[0]
-    return make_pose(rotation @ pose[:3, :3], rotation @ pose[:3, 3] + delta[3:])
 
 
 def epipolar_matches(points_a: np.ndarray, desc_a: np.ndarray, points_b: np.ndarray, desc_b: np.ndarray,
@@ -86,7 +79,7 @@ def _epipolar_rows(pose_a: np.ndarray, pose: np.ndarray, homogeneous_a: np.ndarr
     for k in range(6):
         delta = np.zeros(6)
         delta[k] = DIFFERENCE_STEP
-        moved = _sampson(essential_between(pose_a, perturbed(pose, delta)), homogeneous_a, homogeneous_b)
+        moved = _sampson(essential_between(pose_a, left_increment(pose, delta)), homogeneous_a, homogeneous_b)
         jacobian[:, k] = (moved - residual) / DIFFERENCE_STEP
     return residual, jacobian
 
@@ -113,7 +106,7 @@ def refine_with_epipolar(pose_b: np.ndarray, world: np.ndarray, observed: np.nda
         cauchy = 1.0 / (1.0 + residual ** 2)
         hessian = jacobian.T @ (cauchy[:, None] * jacobian)
         step = np.linalg.solve(hessian + 1e-12 * np.eye(6), -jacobian.T @ (cauchy * residual))
-        pose = perturbed(pose, step)
+        pose = left_increment(pose, step)
         if np.abs(step).max() < CONVERGED:
             break
     return pose

@@ -77,10 +77,12 @@ class KeyframeUpkeep:
         cfg, mapping, focal = self.config, self._mapping_config, self._focal
         new, previous = self.map.keyframes[number], self.map.keyframes[number - 1]
         rows = np.flatnonzero(new.landmark >= 0)
+        if len(rows) < cfg.min_pnp_inliers:
+            return  # too few landmarks to hold the translation: no matching spent on it
         points_a, points_b = epipolar_matches(previous.points, previous.descriptors, new.points, new.descriptors,
                                               previous.pose_cw, new.pose_cw, mapping.keyframe_epipolar_gate_px / focal,
                                               cfg.match_max_distance, cfg.match_ratio)
-        if len(rows) < cfg.min_pnp_inliers or len(points_a) < cfg.min_pnp_inliers:
+        if len(points_a) < cfg.min_pnp_inliers:
             return
         new.pose_cw = refine_with_epipolar(new.pose_cw, self.map.positions[new.landmark[rows]], new.points[rows],
                                            previous.pose_cw, points_a, points_b,

@@ -84,7 +84,8 @@ class MappingConfig:
     # landmark's (0: off), the gate on those matches under the tracked poses, and the robust loss's scale.
     # Off: the drone's 80 take-off runs (starts 0-15 x 10 noise draws), weight 1 against 0: dark 0.87x [0.71,
     # 1.10], onboard 1.11x [0.97, 1.25]; refined during the first map's probation too 0.79x / 1.30x; with the
-    # refined rotation kept in the bundle adjustment 1.16x / 1.27x (docs/vo_takeoff.md).
+    # refined rotation kept in the bundle adjustment 1.16x / 1.27x; only on keyframes a fallback found 0.80x (but
+    # 14 runs under 95 % tracked instead of 10) / 1.07x (docs/vo_takeoff.md).
     keyframe_epipolar_weight: float = 0.0
     keyframe_epipolar_gate_px: float = 20.0
     keyframe_epipolar_scale_px: float = 1.5

@@ -9,12 +9,11 @@ right one. Pose increments act on the left, as in `bundle.py`: cam = Exp(w) (R X
 """
 from __future__ import annotations
 
-import cv2
 import numpy as np
 from scipy import sparse
 
 from vo_runtime.bundle import BundleResult
-from vo_runtime.geometry import make_pose
+from vo_runtime.geometry import left_increment
 
 
 def _project(poses: list[np.ndarray], points: np.ndarray, frame: np.ndarray, point: np.ndarray):
@@ -125,9 +124,7 @@ def schur_bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.nda
                 damping *= 10
                 continue
             d_point = (h_ll_inv @ (b_l - (h_flat.T @ d_pose.ravel()).reshape(n_points, 3))[:, :, None])[:, :, 0]
-            trial_poses = poses[:n_fixed] + [
-                make_pose(cv2.Rodrigues(d[:3])[0] @ p[:3, :3], cv2.Rodrigues(d[:3])[0] @ p[:3, 3] + d[3:])
-                for p, d in zip(poses[n_fixed:], d_pose)]
+            trial_poses = poses[:n_fixed] + [left_increment(p, d) for p, d in zip(poses[n_fixed:], d_pose)]
             trial_points = points + d_point
             trial_res = _residuals(trial_poses, trial_points, obs_frame, obs_point, obs_xy, focal)
             trial_cost = _cost(trial_res, huber_px)
