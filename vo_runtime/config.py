@@ -128,6 +128,17 @@ class VOConfig:
     # 0.86 onboard), but the ATE gained on KITTI 06 in the dark and onboard and lost on KITTI 07 in every light
     # (docs/vo_euroc.md), so it is off until a whole table says otherwise.
     align_normalise: bool = False
+    # Keypoints weighted by their detection score in the pose fit and the local bundle adjustment: a
+    # keypoint's expected position error is (score / the frame's median score) ** -score_sigma_power, within
+    # [1 / score_sigma_limit, score_sigma_limit]; 0: every keypoint alike. Only for a network's detections:
+    # the tracked residuals of the drone camera's keypoints fall with the score as score ** -0.41 to -0.46
+    # (dark and normal light), hence 0.5; ORB's corner response says nothing of its error, and patch-aligned
+    # keypoints (KITTI, TUM at 240x320) are no longer where the score was found (-0.16 there; 0.5 cost KITTI 07
+    # in the dark 1.12x). Against 0 on the drone clip (18 starts, noise draws): dark 0.93x, onboard 0.91x,
+    # normal 0.91x (one start's thin first map lost 9 frames instead of tracking 25 deg off), dark take-off
+    # (40 runs) 0.86x with frames lost 159 -> 97 (docs/vo_euroc.md, "Keypoints weighted by their score").
+    score_sigma_power: float = 0.5
+    score_sigma_limit: float = 2.0
     # A keyframe's mapping on a second thread, overlapping the next frame's extraction (`background.py`):
     # the same results, sooner; a keyframe's own pose is refined after `process` returns (call `finish`).
     mapping_thread: bool = False

@@ -21,14 +21,30 @@ class Features:
     """Detections of one image, in that image's pixel coordinates.
 
     keypoints: [N, 2] float32 (x, y); scores: [N] float32, descending; descriptors: [N, D] float32, unit norm.
+    ``scores_predict_error``: a weaker score means a less precisely placed keypoint (a network's detection
+    probability: `keypoint_sigma`); not so for ORB's corner response (docs/vo_euroc.md, "Keypoints weighted by
+    their score").
     """
 
     keypoints: np.ndarray
     scores: np.ndarray
     descriptors: np.ndarray
+    scores_predict_error: bool = True
 
     def __len__(self) -> int:
         return int(self.keypoints.shape[0])
+
+
+def keypoint_sigma(scores: np.ndarray, power: float, limit: float) -> np.ndarray | None:
+    """Each keypoint's expected position error relative to the frame's typical one, from its detection score:
+    (score / median score) ** -power, clipped to [1 / limit, limit]; None when ``power`` is 0 or the scores say
+    nothing (all alike, or not positive)."""
+    scores = np.asarray(scores, np.float64)
+    median = float(np.median(scores)) if len(scores) else 0.0
+    if power <= 0 or median <= 0 or np.ptp(scores) == 0:
+        return None
+    ratio = np.maximum(scores, 1e-6 * median) / median
+    return np.clip(ratio ** -power, 1.0 / limit, limit)
 
 
 def check_frame(image: object) -> np.ndarray:
@@ -154,13 +170,14 @@ class OrbExtractor:
         gray = to_gray_u8(image)
         keypoints, descriptors = self.orb.detectAndCompute(gray, None)
         if descriptors is None or not keypoints:
-            return Features(np.zeros((0, 2), np.float32), np.zeros(0, np.float32), np.zeros((0, 256), np.float32))
+            return Features(np.zeros((0, 2), np.float32), np.zeros(0, np.float32), np.zeros((0, 256), np.float32),
+                            scores_predict_error=False)
         scores = np.array([kp.response for kp in keypoints], dtype=np.float32)
         order = np.argsort(-scores, kind="stable")
         bits = np.unpackbits(descriptors, axis=1).astype(np.float32)
         unit = (2.0 * bits - 1.0) / np.sqrt(bits.shape[1])
         points = np.array([kp.pt for kp in keypoints], dtype=np.float32)
-        return Features(points[order], scores[order], unit[order])
+        return Features(points[order], scores[order], unit[order], scores_predict_error=False)
 
 
 def spread_selection(keypoints: np.ndarray, scores: np.ndarray, budget: int, grid: tuple[int, int] | None,
@@ -205,7 +222,8 @@ class KeypointBudget:
         features = self.extractor(image)
         height, width = image.shape[:2]
         keep = spread_selection(features.keypoints, features.scores, self.budget, self.grid, width, height)
-        return Features(features.keypoints[keep], features.scores[keep], features.descriptors[keep])
+        return Features(features.keypoints[keep], features.scores[keep], features.descriptors[keep],
+                        features.scores_predict_error)
 
 
 def detector_pixel(extractor: object, height: int, width: int) -> float:

@@ -40,7 +40,7 @@ class KeyframeUpkeep:
 
     def _insert_keyframe(self, index: int, frame: FrameData, landmark: np.ndarray, result: VOResult) -> None:
         keyframe = Keyframe(index, self._poses_cw[index].copy(), frame.points, frame.pixels, frame.descriptors,
-                            landmark.copy(), frame.gray)
+                            landmark.copy(), frame.gray, frame.sigma)
         number = self.map.add_keyframe(keyframe)
         if number >= ALIGN_KEYFRAMES:  # bounded memory: older keyframes are rarely a landmark's latest view
             self.map.keyframes[number - ALIGN_KEYFRAMES].gray = None

@@ -27,6 +27,7 @@ class Keyframe:
     descriptors: np.ndarray  # [N, D], unit rows
     landmark: np.ndarray     # [N] landmark id observed by each keypoint, -1 where none
     gray: np.ndarray | None = None  # the frame, uint8, for patch alignment (`refine.py`); dropped when old
+    sigma: np.ndarray | None = None  # [N] keypoints' expected position errors, relative (`FrameData.sigma`)
 
     def landmark_ids(self) -> np.ndarray:
         return self.landmark[self.landmark >= 0]

@@ -81,7 +81,7 @@ class MapLifecycle:
         reference, current = outcome.reference, outcome.current
         for frame_index, data in ((outcome.reference_index, reference), (index, current)):
             keyframe = Keyframe(frame_index, self._poses_cw[frame_index].copy(), data.points, data.pixels,
-                                data.descriptors, np.full(len(data.points), -1, np.int64), data.gray)
+                                data.descriptors, np.full(len(data.points), -1, np.int64), data.gray, data.sigma)
             self._anchors[self.map.add_keyframe(keyframe)] = [(frame_index, np.eye(4))]
         self.map.add_landmarks(outcome.world, [(0, outcome.reference_rows), (1, outcome.current_rows)], outcome.angles)
         self._set_reference(1)

@@ -239,7 +239,7 @@ def local_bundle_adjustment(local_map: LocalMap, number: int, config: MappingCon
     position = {k: i for i, k in enumerate(window)}
     lookup = np.full(local_map.size, -1)
     lookup[landmarks] = np.arange(len(landmarks))
-    frames, points, xy = [], [], []
+    frames, points, xy, scale = [], [], [], []
     for k in window:
         keyframe = local_map.keyframes[k]
         rows = np.flatnonzero(keyframe.landmark >= 0)
@@ -248,7 +248,9 @@ def local_bundle_adjustment(local_map: LocalMap, number: int, config: MappingCon
         frames.append(np.full(len(rows), position[k]))
         points.append(index)
         xy.append(keyframe.points[rows])
+        scale.append(np.ones(len(rows)) if keyframe.sigma is None else 1.0 / keyframe.sigma[rows])
     frames, points, xy = np.concatenate(frames), np.concatenate(points), np.concatenate(xy)
+    scale = np.concatenate(scale)
     poses = [local_map.keyframes[k].pose_cw for k in window]
     world = local_map.positions[landmarks]
     cam = np.einsum("kij,kj->ki", np.stack(poses)[frames, :3, :3], world[points]) + np.stack(poses)[frames, :3, 3]
@@ -261,7 +263,7 @@ def local_bundle_adjustment(local_map: LocalMap, number: int, config: MappingCon
         return []
     result = schur_bundle_adjust(poses, len(fixed), world, frames[keep], points[keep], xy[keep], focal,
                                  iterations=config.ba_iterations, huber_px=config.ba_huber_px,
-                                 min_decrease=config.ba_min_decrease)
+                                 min_decrease=config.ba_min_decrease, obs_scale=scale[keep])
     for k, pose in zip(window[len(fixed):], result.poses_cw[len(fixed):]):
         local_map.keyframes[k].pose_cw = pose
     adjusted = np.unique(points[keep])

@@ -48,7 +48,7 @@ from vo_runtime.background import Background
 from vo_runtime.camera import Camera
 from vo_runtime.config import Extraction, VOConfig, VOResult
 from vo_runtime.errors import CalibrationError, VORuntimeError
-from vo_runtime.features import FeatureExtractor, Features, detector_pixel, to_gray_u8
+from vo_runtime.features import FeatureExtractor, Features, detector_pixel, keypoint_sigma, to_gray_u8
 from vo_runtime.frame_intake import FrameIntake
 from vo_runtime.geometry import camera_centre, invert_pose
 from vo_runtime.initialiser import Initialiser
@@ -247,6 +247,8 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
         if len(features) < cfg.min_features:
             return  # the next frame is matched to the last good one
         frame = FrameData.build(self.camera.normalise(pixels), pixels, features.descriptors)
+        if features.scores_predict_error and self._aligner is None:  # aligned keypoints are no longer detections
+            frame.sigma = keypoint_sigma(features.scores, cfg.score_sigma_power, cfg.score_sigma_limit)
         if self._aligner is not None:
             frame.gray = to_gray_u8(image)
             if cfg.align_normalise:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from vo_runtime.geometry import camera_centre, pose_from_rvec, reprojection_errors, rvec_from_pose
+from vo_runtime.geometry import camera_centre, left_increment, pose_from_rvec, reprojection_errors, rvec_from_pose
 
 # Refinement rounds as in mature feature-based VO: start with a loose gate (the prediction may be a few
 # pixels off) and tighten it, re-fitting on the inliers of the previous round each time.
@@ -15,10 +15,12 @@ REFINE_GATES = (2.0, 1.0, 1.0)
 
 
 def refine_pose(world: np.ndarray, image: np.ndarray, pose_cw: np.ndarray, threshold: float,
-                min_inliers: int) -> tuple[np.ndarray, np.ndarray] | None:
+                min_inliers: int, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """Levenberg-Marquardt refinement of ``pose_cw`` (world-to-camera) on the correspondences it explains.
 
-    Returns (pose, inlier mask at ``threshold``), or None when fewer than ``min_inliers`` remain.
+    ``weights`` [N]: each correspondence's information (1 / its keypoint's variance, relative), None for equal
+    weights (the inlier gates stay in pixels: a keypoint's expected error only weighs its residual). Returns
+    (pose, inlier mask at ``threshold``), or None when fewer than ``min_inliers`` remain.
     """
     rvec, tvec = rvec_from_pose(pose_cw)
     inliers = np.ones(len(world), bool)
@@ -26,12 +28,59 @@ def refine_pose(world: np.ndarray, image: np.ndarray, pose_cw: np.ndarray, thres
         inliers = reprojection_errors(world, image, rvec, tvec) < gate * threshold
         if np.count_nonzero(inliers) < min_inliers:
             return None
-        rvec, tvec = cv2.solvePnPRefineLM(world[inliers], image[inliers], np.eye(3), None, rvec, tvec,
-                                          (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 10, 1e-10))
+        if weights is None:
+            rvec, tvec = cv2.solvePnPRefineLM(world[inliers], image[inliers], np.eye(3), None, rvec, tvec,
+                                              (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 10, 1e-10))
+        else:
+            pose = weighted_pose_fit(world[inliers], image[inliers], pose_from_rvec(rvec, tvec), weights[inliers])
+            rvec, tvec = rvec_from_pose(pose)
     inliers = reprojection_errors(world, image, rvec, tvec) < threshold
     if np.count_nonzero(inliers) < min_inliers:
         return None
     return pose_from_rvec(rvec, tvec), inliers
+
+
+def weighted_pose_fit(world: np.ndarray, image: np.ndarray, pose_cw: np.ndarray, weights: np.ndarray,
+                      iterations: int = 10, min_decrease: float = 1e-6) -> np.ndarray:
+    """Weighted least squares of the normalised reprojection errors by Levenberg-Marquardt from ``pose_cw``;
+    world [N, 3], image [N, 2] normalised, weights [N]. Left increments, as the bundle adjustments'; stops when a
+    step lowers the cost by less than ``min_decrease`` (relative)."""
+    rows = np.repeat(weights, 2)
+
+    def residuals(pose):
+        cam = world @ pose[:3, :3].T + pose[:3, 3]
+        return cam, (cam[:, :2] / cam[:, 2:3] - image).ravel()
+
+    pose, damping = pose_cw, 1e-4
+    cam, res = residuals(pose)
+    cost = float(rows @ res ** 2)
+    for _ in range(iterations):
+        inverse_depth = 1.0 / cam[:, 2]
+        u, v, zero = cam[:, 0] * inverse_depth, cam[:, 1] * inverse_depth, np.zeros(len(cam))
+        jac = np.empty((len(cam), 2, 6))  # d(u, v) / d(rotation, translation) of cam = Exp(w) cam + tau
+        jac[:, 0] = np.stack([-u * v, 1 + u * u, -v, inverse_depth, zero, -u * inverse_depth], axis=1)
+        jac[:, 1] = np.stack([-1 - v * v, u * v, u, zero, inverse_depth, -v * inverse_depth], axis=1)
+        jac = jac.reshape(-1, 6)
+        weighted = jac * rows[:, None]
+        hessian, gradient = weighted.T @ jac, -(weighted.T @ res)
+        improved = False
+        while not improved and damping < 1e6:
+            try:
+                step = np.linalg.solve(hessian + damping * np.diag(np.diag(hessian) + 1e-12), gradient)
+            except np.linalg.LinAlgError:
+                damping *= 10
+                continue
+            trial = left_increment(pose, step)
+            trial_cam, trial_res = residuals(trial)
+            trial_cost = float(rows @ trial_res ** 2)
+            if trial_cost < cost:
+                improved, done = True, cost - trial_cost < min_decrease * cost
+                pose, cam, res, cost, damping = trial, trial_cam, trial_res, trial_cost, max(damping / 10, 1e-9)
+            else:
+                damping *= 10
+        if not improved or done:
+            break
+    return pose
 
 
 def ransac_pose(world: np.ndarray, image: np.ndarray, threshold: float, min_inliers: int,

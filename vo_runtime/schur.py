@@ -52,10 +52,12 @@ def _accumulate(summing: sparse.csr_matrix, values: np.ndarray) -> np.ndarray:
     return (summing @ values.reshape(len(values), -1)).reshape((summing.shape[0],) + values.shape[1:])
 
 
-def _residuals(poses, points, frame, point, xy, focal) -> np.ndarray:
+def _residuals(poses, points, frame, point, xy, gain) -> np.ndarray:
+    """[K, 2]: normalised reprojection errors times ``gain`` [K] (the focal length, or it over each observation's
+    expected error)."""
     cam, _ = _project(poses, points, frame, point)
     with np.errstate(divide="ignore", invalid="ignore"):
-        res = focal * (cam[:, :2] / cam[:, 2:3] - xy)
+        res = gain[:, None] * (cam[:, :2] / cam[:, 2:3] - xy)
     return np.where(np.isfinite(res), res, 1e6)
 
 
@@ -66,18 +68,22 @@ def _cost(res: np.ndarray, huber_px: float) -> float:
 
 def schur_bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.ndarray, obs_frame: np.ndarray,
                         obs_point: np.ndarray, obs_xy: np.ndarray, focal: float, iterations: int = 10,
-                        huber_px: float = 2.5, min_decrease: float = 1e-3) -> BundleResult:
+                        huber_px: float = 2.5, min_decrease: float = 1e-3,
+                        obs_scale: np.ndarray | None = None) -> BundleResult:
     """Refine poses (all but the first ``n_fixed``) and points; arguments as `bundle.bundle_adjust`.
 
     Points are expected to have at least two observations; ``iterations`` caps the LM steps tried, and the
     adjustment stops after a step that lowers the robust cost by less than ``min_decrease`` (relative).
+    ``obs_scale`` [K]: each observation's residual is multiplied by it (1 / its keypoint's relative position
+    error) before the robust cost; the returned residuals are in pixels again.
     """
+    gain = np.full(len(obs_frame), float(focal)) if obs_scale is None else focal * np.asarray(obs_scale, np.float64)
     poses = [p.copy() for p in poses_cw]
     points = points.copy()
     n_free, n_points = len(poses) - n_fixed, len(points)
     free = obs_frame >= n_fixed
     slot = np.where(free, obs_frame - n_fixed, 0)
-    res = _residuals(poses, points, obs_frame, obs_point, obs_xy, focal)
+    res = _residuals(poses, points, obs_frame, obs_point, obs_xy, gain)
     start_cost = float(np.sum(res ** 2))
     cost = _cost(res, huber_px)
     damping = 1e-3
@@ -89,8 +95,8 @@ def schur_bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.nda
         x, y, z = cam.T
         z = np.where(np.abs(z) < 1e-9, 1e-9, z)
         proj = np.zeros((len(cam), 2, 3))
-        proj[:, 0, 0] = proj[:, 1, 1] = focal / z
-        proj[:, 0, 2], proj[:, 1, 2] = -focal * x / z ** 2, -focal * y / z ** 2
+        proj[:, 0, 0] = proj[:, 1, 1] = gain / z
+        proj[:, 0, 2], proj[:, 1, 2] = -gain * x / z ** 2, -gain * y / z ** 2
         j_point = proj @ rotations[obs_frame]            # [K, 2, 3]
         skew = np.zeros((len(cam), 3, 3))                                           # -[cam]x
         skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = z, -y, x
@@ -126,7 +132,7 @@ def schur_bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.nda
             d_point = (h_ll_inv @ (b_l - (h_flat.T @ d_pose.ravel()).reshape(n_points, 3))[:, :, None])[:, :, 0]
             trial_poses = poses[:n_fixed] + [left_increment(p, d) for p, d in zip(poses[n_fixed:], d_pose)]
             trial_points = points + d_point
-            trial_res = _residuals(trial_poses, trial_points, obs_frame, obs_point, obs_xy, focal)
+            trial_res = _residuals(trial_poses, trial_points, obs_frame, obs_point, obs_xy, gain)
             trial_cost = _cost(trial_res, huber_px)
             if trial_cost < cost:
                 poses, points, res, improved = trial_poses, trial_points, trial_res, True
@@ -138,4 +144,7 @@ def schur_bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.nda
         if not improved or converged:
             break
     final = np.linalg.norm(res, axis=1)
-    return BundleResult(poses, points, final, start_cost, float(np.sum(final ** 2)))
+    final_cost = float(np.sum(final ** 2))
+    if obs_scale is not None:  # back to pixels
+        final = final * focal / gain
+    return BundleResult(poses, points, final, start_cost, final_cost)

@@ -35,6 +35,7 @@ class FrameData:
     tree: cKDTree            # over ``points``
     gray: np.ndarray | None = None  # the frame, uint8, for patch alignment (`refine.py`)
     detected: np.ndarray | None = None  # ``points`` as detected, before alignment moves some (`probation.py`)
+    sigma: np.ndarray | None = None  # [N] each keypoint's expected position error, relative (None: all alike)
 
     @classmethod
     def build(cls, points: np.ndarray, pixels: np.ndarray, descriptors: np.ndarray) -> "FrameData":
@@ -116,7 +117,8 @@ def _fit_pose(local_map: LocalMap, visible: np.ndarray, pairs: np.ndarray, pose_
     ids = visible[pairs[:, 0]]
     reliable = (local_map.angles[ids] >= settings.pose_min_angle) | (local_map.found[ids] >= settings.pose_min_found)
     use = reliable if np.count_nonzero(reliable) >= 2 * settings.min_inliers else np.ones(len(pairs), bool)
-    fit = refine_pose(world[use], image[use], pose_cw, threshold, settings.min_inliers)
+    weights = None if frame.sigma is None else frame.sigma[pairs[use, 1]] ** -2.0
+    fit = refine_pose(world[use], image[use], pose_cw, threshold, settings.min_inliers, weights)
     if robust and fit is None:
         fit = ransac_pose(world[use], image[use], threshold, settings.min_inliers)
     elif fit is not None and settings.check_speed is not None:
