@@ -29,6 +29,17 @@ def left_increment(pose: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return make_pose(step @ pose[:3, :3], step @ pose[:3, 3] + delta[3:])
 
 
+def projection_jacobian(cam: np.ndarray) -> np.ndarray:
+    """d(x/z, y/z) / d(rotation vector, translation) of a left increment cam = Exp(w) cam + tau, for camera
+    points ``cam`` [N, 3]: [2N, 6], rows (u, v) per point, as `keyframe_pose` and `pose.weighted_pose_fit` use."""
+    inverse_depth = 1.0 / cam[:, 2]
+    u, v, zero = cam[:, 0] * inverse_depth, cam[:, 1] * inverse_depth, np.zeros(len(cam))
+    jacobian = np.empty((len(cam), 2, 6))
+    jacobian[:, 0] = np.stack([-u * v, 1 + u * u, -v, inverse_depth, zero, -u * inverse_depth], axis=1)
+    jacobian[:, 1] = np.stack([-1 - v * v, u * v, u, zero, inverse_depth, -v * inverse_depth], axis=1)
+    return jacobian.reshape(-1, 6)
+
+
 def rvec_from_pose(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """4x4 world-to-camera pose -> OpenCV (rvec [3, 1], tvec [3, 1])."""
     return cv2.Rodrigues(pose[:3, :3])[0], pose[:3, 3].reshape(3, 1).copy()

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vo_runtime.geometry import left_increment
+from vo_runtime.geometry import left_increment, projection_jacobian
 from vo_runtime.mapping import essential_between
 from vo_runtime.matching import match_mutual_nn
 
@@ -55,20 +55,8 @@ def epipolar_matches(points_a: np.ndarray, desc_a: np.ndarray, points_b: np.ndar
 def _projection_rows(pose: np.ndarray, world: np.ndarray, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Reprojection residuals [2N] of ``world`` under ``pose`` and their Jacobian [2N, 6] in a left increment."""
     camera = world @ pose[:3, :3].T + pose[:3, 3]
-    x, y, z = camera[:, 0], camera[:, 1], camera[:, 2]
-    inverse = 1.0 / z
-    residual = np.column_stack([x * inverse, y * inverse]) - observed
-    # d(projection)/d(camera point) [N, 2, 3], d(camera point)/d(rotation vector, translation) = [-[p]x, I]
-    d_projection = np.zeros((len(world), 2, 3))
-    d_projection[:, 0, 0] = d_projection[:, 1, 1] = inverse
-    d_projection[:, 0, 2] = -x * inverse ** 2
-    d_projection[:, 1, 2] = -y * inverse ** 2
-    d_point = np.zeros((len(world), 3, 6))
-    d_point[:, 0, 1], d_point[:, 0, 2] = z, -y
-    d_point[:, 1, 0], d_point[:, 1, 2] = -z, x
-    d_point[:, 2, 0], d_point[:, 2, 1] = y, -x
-    d_point[:, :, 3:] = np.eye(3)
-    return residual.ravel(), np.einsum("nij,njk->nik", d_projection, d_point).reshape(-1, 6)
+    residual = camera[:, :2] / camera[:, 2:3] - observed
+    return residual.ravel(), projection_jacobian(camera)
 
 
 def _epipolar_rows(pose_a: np.ndarray, pose: np.ndarray, homogeneous_a: np.ndarray,

@@ -250,7 +250,8 @@ def local_bundle_adjustment(local_map: LocalMap, number: int, config: MappingCon
         xy.append(keyframe.points[rows])
         scale.append(np.ones(len(rows)) if keyframe.sigma is None else 1.0 / keyframe.sigma[rows])
     frames, points, xy = np.concatenate(frames), np.concatenate(points), np.concatenate(xy)
-    scale = np.concatenate(scale)
+    # Unweighted keyframes (ORB, aligned keypoints) take the plain adjustment, not one scaled by ones.
+    scale = np.concatenate(scale) if any(local_map.keyframes[k].sigma is not None for k in window) else None
     poses = [local_map.keyframes[k].pose_cw for k in window]
     world = local_map.positions[landmarks]
     cam = np.einsum("kij,kj->ki", np.stack(poses)[frames, :3, :3], world[points]) + np.stack(poses)[frames, :3, 3]
@@ -263,7 +264,8 @@ def local_bundle_adjustment(local_map: LocalMap, number: int, config: MappingCon
         return []
     result = schur_bundle_adjust(poses, len(fixed), world, frames[keep], points[keep], xy[keep], focal,
                                  iterations=config.ba_iterations, huber_px=config.ba_huber_px,
-                                 min_decrease=config.ba_min_decrease, obs_scale=scale[keep])
+                                 min_decrease=config.ba_min_decrease,
+                                 obs_scale=None if scale is None else scale[keep])
     for k, pose in zip(window[len(fixed):], result.poses_cw[len(fixed):]):
         local_map.keyframes[k].pose_cw = pose
     adjusted = np.unique(points[keep])

@@ -7,7 +7,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from vo_runtime.geometry import camera_centre, left_increment, pose_from_rvec, reprojection_errors, rvec_from_pose
+from vo_runtime.geometry import (camera_centre, left_increment, pose_from_rvec, projection_jacobian, reprojection_errors,
+                                 rvec_from_pose)
 
 # Refinement rounds as in mature feature-based VO: start with a loose gate (the prediction may be a few
 # pixels off) and tighten it, re-fitting on the inliers of the previous round each time.
@@ -55,15 +56,10 @@ def weighted_pose_fit(world: np.ndarray, image: np.ndarray, pose_cw: np.ndarray,
     cam, res = residuals(pose)
     cost = float(rows @ res ** 2)
     for _ in range(iterations):
-        inverse_depth = 1.0 / cam[:, 2]
-        u, v, zero = cam[:, 0] * inverse_depth, cam[:, 1] * inverse_depth, np.zeros(len(cam))
-        jac = np.empty((len(cam), 2, 6))  # d(u, v) / d(rotation, translation) of cam = Exp(w) cam + tau
-        jac[:, 0] = np.stack([-u * v, 1 + u * u, -v, inverse_depth, zero, -u * inverse_depth], axis=1)
-        jac[:, 1] = np.stack([-1 - v * v, u * v, u, zero, inverse_depth, -v * inverse_depth], axis=1)
-        jac = jac.reshape(-1, 6)
+        jac = projection_jacobian(cam)
         weighted = jac * rows[:, None]
         hessian, gradient = weighted.T @ jac, -(weighted.T @ res)
-        improved = False
+        improved = done = False
         while not improved and damping < 1e6:
             try:
                 step = np.linalg.solve(hessian + damping * np.diag(np.diag(hessian) + 1e-12), gradient)
