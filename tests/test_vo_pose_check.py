@@ -104,8 +104,9 @@ def test_the_dark_mid_flight_start_keeps_its_direction_only_with_the_check(share
     """The real case (docs/vo_takeoff.md, "Mid-flight, found"): the drone clip from frame 100 in the dark. Over its
     first 20 tracked frames the travel direction stays within 25 deg of the ground truth's with the check; without
     it, with the 3x3-centroid artefact it was found with, the first tracked frame slides into the wrong basin and
-    the direction is off by 60-90 deg. The shipped artefact's more precise keypoints keep the direction either way
-    (6 deg without the check when written)."""
+    the direction is off by 60-90 deg. The shipped artefact kept the direction without the check too (6 deg) until
+    young landmarks were weighted down (`VOConfig.landmark_variance`): every landmark of a first map is young, which
+    flattens the score weights there, and without the check it now slides part way (33 deg)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/ is a folder of scripts
     from bench.eval_vo import LIGHTS
     from vo_runtime import VisualOdometry
@@ -136,7 +137,7 @@ def test_the_dark_mid_flight_start_keeps_its_direction_only_with_the_check(share
     true = truth[first][:3, :3].T @ true
     cos = estimated @ true / (np.linalg.norm(estimated) * np.linalg.norm(true))
     error_deg = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
-    if check or artefact == "shipped":
+    if check:
         assert error_deg < 25.0
     else:
-        assert error_deg > 45.0
+        assert error_deg > (45.0 if artefact == "3x3" else 25.0)

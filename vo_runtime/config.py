@@ -139,6 +139,15 @@ class VOConfig:
     # (40 runs) 0.86x with frames lost 159 -> 97 (docs/vo_euroc.md, "Keypoints weighted by their score").
     score_sigma_power: float = 0.5
     score_sigma_limit: float = 2.0
+    # ... and each match by how often its landmark was seen: in the tracked pose fit a match's variance is its
+    # keypoint's sigma ** 2 plus landmark_variance / (keyframes that observed the landmark - 1), as a landmark
+    # triangulated from few noisy views is itself off. The drone clip's tracked inliers (starts 70, 100, 130, one
+    # draw) lie a median 1.14 / 0.94 / 0.80 / 0.66 px from landmarks seen by 2 / 3 / 4 / 10+ keyframes in the
+    # dark, which that model fits with 3.0 keypoint variances (onboard light 2.1, normal light 0.85); 2 against 0:
+    # drone clip 18 starts x 3 draws dark 0.94x, onboard 0.97x, normal 1.02x; take-off 40 runs dark 0.91x,
+    # onboard 0.79x (docs/vo_euroc.md, "Young landmarks weighted down"). Weighted fits only (a network's
+    # detections at the camera's resolution); 0: every landmark taken as exact.
+    landmark_variance: float = 2.0
     # A keyframe's mapping on a second thread, overlapping the next frame's extraction (`background.py`):
     # the same results, sooner; a keyframe's own pose is refined after `process` returns (call `finish`).
     mapping_thread: bool = False
@@ -151,6 +160,8 @@ class VOConfig:
             raise VORuntimeError("initial_baseline must be positive")
         if self.align_window_px < 0 or self.align_max_shift <= 0 or self.align_gain < 1:
             raise VORuntimeError("align_window_px must be >= 0, align_max_shift > 0 and align_gain >= 1")
+        if self.landmark_variance < 0:
+            raise VORuntimeError("landmark_variance must be >= 0")
         if self.probation_frames < 0 or self.probation_max_deg <= 0 or self.probation_max_discards < 0:
             raise VORuntimeError("probation_frames and probation_max_discards must be >= 0, probation_max_deg > 0")
         if self.travel_check_gap < 0 or self.travel_check_frames < 1 or self.travel_check_min_inliers < 5 \

@@ -299,7 +299,8 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
                                 cfg.match_max_distance, cfg.match_ratio, cfg.max_local_points,
                                 float(np.degrees(cfg.mapping.pose_min_parallax_px / self._focal)),
                                 cfg.mapping.pose_min_found, check_speed=self._speed if cfg.pose_check else None,
-                                check_jump=cfg.pose_check_jump, check_share=cfg.pose_check_share)
+                                check_jump=cfg.pose_check_jump, check_share=cfg.pose_check_share,
+                                landmark_variance=cfg.landmark_variance)
 
     def _relocalise(self, frame: FrameData):
         cfg = self.config

@@ -70,7 +70,22 @@ class TrackingSettings:
     check_speed: float | None = None
     check_jump: float = 1.0
     check_share: float = 0.5
+    # A landmark's own position error, as a share of a keypoint's variance: seen from n keyframes it adds
+    # landmark_variance / (n - 1) to its match's variance in a weighted pose fit (0: landmarks exact).
+    landmark_variance: float = 0.0
     seconds: dict = field(default_factory=lambda: {"matching": 0.0, "pose": 0.0})  # time spent, for the bench
+
+
+def match_weights(sigma: np.ndarray, views: np.ndarray | None, landmark_variance: float) -> np.ndarray:
+    """[N] weights (1 / variance) of keypoint-to-landmark matches for a pose fit: ``sigma`` [N] each keypoint's
+    relative position error, ``views`` [N] the keyframes that observed each landmark (None with
+    ``landmark_variance`` 0). A landmark triangulated from n views adds ``landmark_variance`` / (n - 1)."""
+    if landmark_variance < 0:
+        raise ValueError("landmark_variance must be >= 0")
+    variance = np.asarray(sigma, np.float64) ** 2.0
+    if landmark_variance > 0:
+        variance = variance + landmark_variance / np.maximum(np.asarray(views) - 1, 1)
+    return 1.0 / variance
 
 
 def in_view(local_map: LocalMap, ids: np.ndarray, pose_cw: np.ndarray,
@@ -117,7 +132,10 @@ def _fit_pose(local_map: LocalMap, visible: np.ndarray, pairs: np.ndarray, pose_
     ids = visible[pairs[:, 0]]
     reliable = (local_map.angles[ids] >= settings.pose_min_angle) | (local_map.found[ids] >= settings.pose_min_found)
     use = reliable if np.count_nonzero(reliable) >= 2 * settings.min_inliers else np.ones(len(pairs), bool)
-    weights = None if frame.sigma is None else frame.sigma[pairs[use, 1]] ** -2.0
+    weights = None
+    if frame.sigma is not None:
+        views = local_map.observation_counts(ids[use]) if settings.landmark_variance > 0 else None
+        weights = match_weights(frame.sigma[pairs[use, 1]], views, settings.landmark_variance)
     fit = refine_pose(world[use], image[use], pose_cw, threshold, settings.min_inliers, weights)
     if robust and fit is None:
         fit = ransac_pose(world[use], image[use], threshold, settings.min_inliers)
