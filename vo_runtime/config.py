@@ -144,7 +144,8 @@ class VOConfig:
     # triangulated from few noisy views is itself off. The drone clip's tracked inliers (starts 70, 100, 130, one
     # draw) lie a median 1.14 / 0.94 / 0.80 / 0.66 px from landmarks seen by 2 / 3 / 4 / 10+ keyframes in the
     # dark: by those medians 3.0 keypoint variances (onboard light 2.1, normal light 0.85), by a least-squares fit
-    # of the squared residuals on sigma ** 2 and 1 / (views - 1) per run 0.6-1.2 in every light; 2 against 0:
+    # of the squared residuals on sigma ** 2 and 1 / (views - 1) per run 0.6-1.2 in every light, but 1 against 2
+    # over the drone clip (18 starts x 3 draws) 1.03x dark and onboard; 2 against 0:
     # drone clip 18 starts x 3 draws dark 0.94x, onboard 0.97x, normal 1.02x; take-off 40 runs dark 0.91x,
     # onboard 0.79x (docs/vo_euroc.md, "Young landmarks weighted down"). Weighted fits only (a network's
     # detections at the camera's resolution); 0: every landmark taken as exact.
