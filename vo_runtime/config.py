@@ -140,15 +140,12 @@ class VOConfig:
     score_sigma_power: float = 0.5
     score_sigma_limit: float = 2.0
     # ... and each match by how often its landmark was seen: in the tracked pose fit a match's variance is its
-    # keypoint's sigma ** 2 plus landmark_variance / (keyframes that observed the landmark - 1), as a landmark
-    # triangulated from few noisy views is itself off. The drone clip's tracked inliers (starts 70, 100, 130, one
-    # draw) lie a median 1.14 / 0.94 / 0.80 / 0.66 px from landmarks seen by 2 / 3 / 4 / 10+ keyframes in the
-    # dark: by those medians 3.0 keypoint variances (onboard light 2.1, normal light 0.85), by a least-squares fit
-    # of the squared residuals on sigma ** 2 and 1 / (views - 1) per run 0.6-1.2 in every light, but 1 against 2
-    # over the drone clip (18 starts x 3 draws) 1.03x dark and onboard; 2 against 0:
-    # drone clip 18 starts x 3 draws dark 0.94x, onboard 0.97x, normal 1.02x; take-off 40 runs dark 0.91x,
-    # onboard 0.79x (docs/vo_euroc.md, "Young landmarks weighted down"). Weighted fits only (a network's
-    # detections at the camera's resolution); 0: every landmark taken as exact.
+    # keypoint's sigma ** 2 plus landmark_variance / (keyframes that observed the landmark - 1), since a landmark
+    # triangulated from few noisy views is itself off (the dark drone clip's inliers lie a median 1.14 / 0.94 /
+    # 0.80 / 0.66 px from landmarks seen by 2 / 3 / 4 / 10+ keyframes). 2 against 0: drone clip 18 starts x 3 draws
+    # dark 0.94x, onboard 0.97x, normal 1.02x; take-off 40 runs dark 0.91x, onboard 0.79x; 1 against 2 on the clip
+    # 1.03x (docs/vo_euroc.md, "Young landmarks weighted down"). Weighted fits only (a network's detections at the
+    # camera's resolution: ORB, KITTI and TUM runs are unchanged); 0: every landmark taken as exact.
     landmark_variance: float = 2.0
     # A keyframe's mapping on a second thread, overlapping the next frame's extraction (`background.py`):
     # the same results, sooner; a keyframe's own pose is refined after `process` returns (call `finish`).
