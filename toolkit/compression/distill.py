@@ -65,6 +65,37 @@ def optimiser_step(optimizer: torch.optim.Optimizer, loss: torch.Tensor, step: i
     return float(loss.detach())
 
 
+def log_losses(rows: list[dict], running: list[float], step: int, every: int, lr: float, began: float, log) -> None:
+    """Every ``every`` steps: one row of the loss log (mean of ``running``, which is emptied) and its line."""
+    if (step + 1) % every:
+        return
+    rows.append({"step": step + 1, "loss": float(np.mean(running)), "lr": lr,
+                 "seconds": round(time.perf_counter() - began, 1)})
+    running.clear()
+    log(f"step {step + 1} loss {rows[-1]['loss']:.4f} ({rows[-1]['seconds']:.0f} s)")
+
+
+def train_with_grid_sample(models: list[nn.Module]) -> dict[nn.Module, set[str]]:
+    """Switch every deformable conv of ``models`` to grid_sample (the gather sampler's values, faster to train);
+    returns what each used, for `restore_sampling`."""
+    from models.deform import DeformableConv, set_deform_strategy
+
+    used = {model: {layer.strategy for layer in model.modules() if isinstance(layer, DeformableConv)}
+            for model in models}
+    for model in models:
+        set_deform_strategy(model, "grid_sample")
+    return used
+
+
+def restore_sampling(used: dict[nn.Module, set[str]]) -> None:
+    """The caller's models sample as they did before `train_with_grid_sample`."""
+    from models.deform import set_deform_strategy
+
+    for model, strategies in used.items():
+        if len(strategies) == 1:
+            set_deform_strategy(model, next(iter(strategies)))
+
+
 def _labelled_pairs(images: Path, labels: Path, seed: int):
     try:
         from toolkit.training.homographies import HomographyConfig

@@ -22,9 +22,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from models.deform import DeformableConv, set_deform_strategy
 from models.featurenet import FeatureNet, FeatureNetConfig
-from toolkit.compression.distill import distillation_loss, optimiser_step
+from toolkit.compression.distill import (distillation_loss, log_losses, optimiser_step, restore_sampling,
+                                         train_with_grid_sample)
 from toolkit.compression.images import find_images
 from toolkit.errors import ToolkitError
 from toolkit.training.augment import AugmentConfig, photometric_augment
@@ -126,10 +126,7 @@ def distill_slim(student: FeatureNet, teacher: nn.Module, image_dir: str | Path,
     batches = torch.utils.data.DataLoader(_Batches(images, config), batch_size=None, shuffle=False,
                                           num_workers=config.workers, pin_memory=device.type == "cuda",
                                           persistent_workers=config.workers > 0)
-    strategies = {model: {layer.strategy for layer in model.modules() if isinstance(layer, DeformableConv)}
-                  for model in (student, teacher)}
-    for model in (student, teacher):
-        set_deform_strategy(model, "grid_sample")  # same values as the gather sampler, faster to train
+    strategies = train_with_grid_sample([student, teacher])
     teacher = teacher.to(device).eval().requires_grad_(False)
     student = student.to(device).train().requires_grad_(True)
     optimizer = torch.optim.Adam(student.parameters(), lr=config.lr)
@@ -151,17 +148,11 @@ def distill_slim(student: FeatureNet, teacher: nn.Module, image_dir: str | Path,
             target = teacher(inputs)
         loss = distillation_loss(student(inputs), target, config.temperature)
         running.append(optimiser_step(optimizer, loss, step, "slim distillation"))
-        if (step + 1) % 50 == 0:
-            rows.append({"step": step + 1, "loss": float(np.mean(running)), "lr": _learning_rate(config, step, total),
-                         "seconds": round(time.perf_counter() - began, 1)})
-            running = []
-            log(f"step {step + 1}/{total} loss {rows[-1]['loss']:.4f} ({rows[-1]['seconds']:.0f} s)")
+        log_losses(rows, running, step, 50, _learning_rate(config, step, total), began, log)
         if save is not None and (step + 1) % config.checkpoint_every == 0:
             save(student, step + 1)
     student.eval().requires_grad_(False)
-    for model, used in strategies.items():  # the caller's models sample as they did before
-        if len(used) == 1:
-            set_deform_strategy(model, used.pop())
+    restore_sampling(strategies)  # the caller's models sample as they did before
     if save is not None:
         save(student, min(total, config.steps))
     return rows
@@ -220,12 +211,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    import sys
+    from toolkit.errors import run_module_main
 
-    from models.errors import ModelError
-
-    try:
-        raise SystemExit(main())
-    except (ToolkitError, ModelError, ValueError) as error:  # bad input: one line, no traceback
-        print(f"error: {error}", file=sys.stderr)
-        raise SystemExit(2) from None
+    run_module_main(main)
