@@ -147,6 +147,13 @@ class VOConfig:
     # 1.03x (docs/vo_euroc.md, "Young landmarks weighted down"). Weighted fits only (a network's detections at the
     # camera's resolution: ORB, KITTI and TUM runs are unchanged); 0: every landmark taken as exact.
     landmark_variance: float = 2.0
+    # When the search from the constant-velocity prediction fails, the rotation since the last tracked frame
+    # measured on the two frames' matches turns the prediction for a second search, and a pose the wide search or
+    # the previous frame finds must agree with it within this many degrees (`tracking.track_frame`; 0: off). Off:
+    # on the dark take-off's loss at frame 33 the turned prediction is 0.10 deg from the true turn, yet the thin
+    # map still gives too few matches; 1 against 0 with `mapping.wide_partner_keyframes` 8 (40 take-off runs):
+    # dark 0.85x, onboard 1.21x with 8 runs under 95 % tracked instead of 2 (docs/vo_euroc.md).
+    image_rotation_deg: float = 0.0
     # A keyframe's mapping on a second thread, overlapping the next frame's extraction (`background.py`):
     # the same results, sooner; a keyframe's own pose is refined after `process` returns (call `finish`).
     mapping_thread: bool = False
@@ -159,8 +166,8 @@ class VOConfig:
             raise VORuntimeError("initial_baseline must be positive")
         if self.align_window_px < 0 or self.align_max_shift <= 0 or self.align_gain < 1:
             raise VORuntimeError("align_window_px must be >= 0, align_max_shift > 0 and align_gain >= 1")
-        if self.landmark_variance < 0:
-            raise VORuntimeError("landmark_variance must be >= 0")
+        if self.landmark_variance < 0 or self.image_rotation_deg < 0:
+            raise VORuntimeError("landmark_variance and image_rotation_deg must be >= 0")
         if self.probation_frames < 0 or self.probation_max_deg <= 0 or self.probation_max_discards < 0:
             raise VORuntimeError("probation_frames and probation_max_discards must be >= 0, probation_max_deg > 0")
         if self.travel_check_gap < 0 or self.travel_check_frames < 1 or self.travel_check_min_inliers < 5 \

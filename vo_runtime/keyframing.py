@@ -17,7 +17,7 @@ from vo_runtime.localmap import Keyframe
 from vo_runtime.mapping import (cull_landmarks, local_bundle_adjustment, observe_in_neighbours, refresh_landmarks,
                                 triangulate_new_landmarks)
 from vo_runtime.refine import align_rows
-from vo_runtime.tracking import FrameData
+from vo_runtime.tracking import LOCAL_MAP, FrameData
 
 ALIGN_KEYFRAMES = 12  # keyframes that keep their image for patch alignment (the local map's 8 and some)
 
@@ -61,7 +61,8 @@ class KeyframeUpkeep:
             self._refine_keyframe_pose(number)
         refresh_landmarks(self.map, number, mapping, focal)
         triangulate_new_landmarks(self.map, number, mapping, focal, cfg.match_max_distance, cfg.match_ratio,
-                                  self._align if self._aligner is not None else None, self._detection_scale)
+                                  self._align if self._aligner is not None else None, self._detection_scale,
+                                  wide_partner=result.tracked_by == LOCAL_MAP)
         observe_in_neighbours(self.map, number, mapping, focal, cfg.match_max_distance, cfg.match_ratio,
                               self._align if self._aligner is not None else None)
         for moved in local_bundle_adjustment(self.map, number, mapping, focal):

@@ -119,6 +119,10 @@ class LocalMap:
     def covisible(self, number: int, count: int, recent: int = 30) -> list[int]:
         """Up to ``count`` keyframes sharing the most landmarks with keyframe ``number`` (searched among the
         ``recent`` keyframes before and after it), best first."""
+        return [k for k, _ in self.covisible_counts(number, count, recent)]
+
+    def covisible_counts(self, number: int, count: int, recent: int = 30) -> list[tuple[int, int]]:
+        """`covisible` with the landmarks each shares: [(keyframe, shared)], best first."""
         # Counted from the landmarks' own observation lists (a keyframe observes a landmark at most once):
         # the same counts as intersecting every recent keyframe's landmark column, at a fifth of the cost.
         shared: dict[int, int] = {}
@@ -127,7 +131,7 @@ class LocalMap:
                 shared[k] = shared.get(k, 0) + 1
         ranked = sorted(((n, k) for k, n in shared.items() if k != number and abs(k - number) <= recent),
                         key=lambda item: (-item[0], -item[1]))
-        return [k for _, k in ranked[:count]]
+        return [(k, n) for n, k in ranked[:count]]
 
     def landmarks_of(self, keyframes: list[int]) -> np.ndarray:
         """Unique alive landmark ids observed by any of ``keyframes``."""

@@ -19,7 +19,7 @@ from typing import Callable
 import numpy as np
 
 from vo_runtime.errors import VORuntimeError
-from vo_runtime.geometry import ray_angles, triangulate
+from vo_runtime.geometry import camera_centre, ray_angles, triangulate
 from vo_runtime.localmap import LocalMap
 from vo_runtime.matching import match_by_projection, match_epipolar
 from vo_runtime.schur import schur_bundle_adjust
@@ -31,6 +31,14 @@ class MappingConfig:
     """Thresholds of the mapping step (pixels are the frame's, angles in degrees)."""
 
     triangulation_keyframes: int = 2     # covisible keyframes the new one triangulates against
+    # Besides those, the keyframe furthest from the new one among its this many best covisible ones that share
+    # at least `wide_partner_min_shared` landmarks, for a keyframe the local map tracked (0: none). In a turn every
+    # frame becomes a keyframe and the neighbours' baselines are a frame long, so the new view gets few landmarks
+    # (the dark take-off is lost at frame 34 in 7 of 40 runs). Off: 8 against 0 over those 40 runs, dark 0.89x
+    # [0.64, 1.42], lost frames 111 -> 52, but two runs tracked a collapsed map (1.7, 1.9 m); mid-flight 0.99x /
+    # 1.00x; with `image_rotation_deg` 1 dark 0.85x (lost 88), onboard 1.21x (lost 98 -> 145; docs/vo_euroc.md).
+    wide_partner_keyframes: int = 0
+    wide_partner_min_shared: int = 20
     triangulation_candidates: int = 1500  # keypoints without a landmark, per keyframe, that may get one
     # Lowe ratio for matches between keyframes (no stricter than tracking's): a wrong match along the
     # epipolar line passes every geometric check but gives a wrong depth.
@@ -112,9 +120,24 @@ def essential_between(pose_a: np.ndarray, pose_b: np.ndarray) -> np.ndarray:
     return skew @ rotation
 
 
+def widest_partner(local_map: LocalMap, number: int, count: int, min_shared: int) -> int | None:
+    """Among keyframe ``number``'s ``count`` best covisible keyframes sharing >= ``min_shared`` landmarks, the one
+    whose camera centre is furthest from its own; None if none (or ``count`` 0)."""
+    if count <= 0:
+        return None
+    shared = local_map.covisible_counts(number, count)
+    centre = camera_centre(local_map.keyframes[number].pose_cw)
+    best, best_distance = None, 0.0
+    for other, n in shared:
+        distance = float(np.linalg.norm(camera_centre(local_map.keyframes[other].pose_cw) - centre))
+        if n >= min_shared and distance > best_distance:
+            best, best_distance = other, distance
+    return best
+
+
 def triangulate_new_landmarks(local_map: LocalMap, number: int, config: MappingConfig, focal: float,
                               max_distance: float, ratio: float | None, align: Callable | None = None,
-                              detection_scale: float = 1.0) -> int:
+                              detection_scale: float = 1.0, wide_partner: bool = True) -> int:
     """Create landmarks between keyframe ``number`` and its covisible keyframes; returns how many.
 
     ``align(source, target, source_rows, target_rows)``, when given, moves the new keyframe's matched
@@ -127,6 +150,10 @@ def triangulate_new_landmarks(local_map: LocalMap, number: int, config: MappingC
     neighbours = [number - 1] if number > 0 else []
     neighbours += [k for k in local_map.covisible(number, config.triangulation_keyframes) if k != number - 1]
     neighbours = neighbours[: config.triangulation_keyframes]
+    wide = widest_partner(local_map, number, config.wide_partner_keyframes if wide_partner else 0,
+                          config.wide_partner_min_shared)
+    if wide is not None and wide not in neighbours:
+        neighbours.append(wide)
     created = 0
     for other_number in neighbours:
         other = local_map.keyframes[other_number]

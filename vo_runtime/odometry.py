@@ -258,7 +258,8 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
         lost = self._lost_since >= 0
         if mapped and self._last_tracked >= 0 and (not lost or index - self._last_tracked <= cfg.lost_predict_frames):
             settings = self._settings(frame)
-            outcome = track_frame(self.map, self._local_ids, self._predict(index), frame, self._previous, settings)
+            outcome = track_frame(self.map, self._local_ids, self._predict(index), frame, self._previous, settings,
+                                  self._poses_cw[self._last_tracked])
             result.match_ms = 1e3 * settings.seconds["matching"]
             result.pose_ms = 1e3 * settings.seconds["pose"]
             if outcome is not None:
@@ -300,7 +301,7 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
                                 float(np.degrees(cfg.mapping.pose_min_parallax_px / self._focal)),
                                 cfg.mapping.pose_min_found, check_speed=self._speed if cfg.pose_check else None,
                                 check_jump=cfg.pose_check_jump, check_share=cfg.pose_check_share,
-                                landmark_variance=cfg.landmark_variance)
+                                landmark_variance=cfg.landmark_variance, image_rotation_deg=cfg.image_rotation_deg)
 
     def _relocalise(self, frame: FrameData):
         cfg = self.config

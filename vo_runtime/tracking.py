@@ -17,12 +17,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from vo_runtime.geometry import reprojection_errors, rvec_from_pose
+from vo_runtime.geometry import camera_centre, reprojection_errors, rvec_from_pose
 from vo_runtime.localmap import LocalMap
 from vo_runtime.matching import match_by_projection, match_mutual_nn
 from vo_runtime.pose import ransac_pose, refine_pose, second_opinion
+from vo_runtime.rotation_fit import fit_rotation_ransac
 
 LOCAL_MAP, WIDE_SEARCH, PREVIOUS_FRAME, RELOCALISATION = "local map", "wide search", "previous frame", "relocalisation"
+IMAGE_ROTATION = "image rotation"  # the local map searched again from a pose turned by the frames' own rotation
+ROTATION_MIN_MATCHES = 20  # frame-to-frame matches (and rotation inliers) a measured rotation needs
+ROTATION_FIT_PX = 2.0      # the rotation fit's inlier gate, detector pixels
 
 
 @dataclass
@@ -73,6 +77,10 @@ class TrackingSettings:
     # A landmark's own position error, as a share of a keypoint's variance: seen from n keyframes it adds
     # landmark_variance / (n - 1) to its match's variance in a weighted pose fit (0: landmarks exact).
     landmark_variance: float = 0.0
+    # When the search from the predicted pose fails: the rotation since the last tracked frame measured from the
+    # two frames' matches (`rotation_fit.py`) turns the prediction and the local map is searched again; a pose a
+    # wider fallback finds must agree with that rotation within this many degrees (0: neither).
+    image_rotation_deg: float = 0.0
     seconds: dict = field(default_factory=lambda: {"matching": 0.0, "pose": 0.0})  # time spent, for the bench
 
 
@@ -164,16 +172,28 @@ def refit_pose(local_map: LocalMap, frame: FrameData, outcome: TrackOutcome, set
 
 
 def track_frame(local_map: LocalMap, ids: np.ndarray, predicted_cw: np.ndarray, frame: FrameData,
-                previous: tuple[FrameData, np.ndarray] | None, settings: TrackingSettings) -> TrackOutcome | None:
+                previous: tuple[FrameData, np.ndarray] | None, settings: TrackingSettings,
+                previous_pose_cw: np.ndarray | None = None) -> TrackOutcome | None:
     """Local map tracking with its fallbacks (see the module docstring); ``previous`` is the last tracked
-    frame and its landmark column. Counts every landmark predicted in view as ``visible``."""
+    frame and its landmark column, ``previous_pose_cw`` its pose. Counts every landmark predicted in view as
+    ``visible``."""
     outcome = guided_pose(local_map, ids, predicted_cw, frame, settings, settings.radius_px)
+    turn = None  # the camera's rotation since the previous frame, measured on the two frames' matches
+    if outcome is None and settings.image_rotation_deg > 0 and previous is not None and previous_pose_cw is not None:
+        turn = image_rotation(previous[0], frame, settings)
+        if turn is not None:
+            outcome = guided_pose(local_map, ids, turned(predicted_cw, previous_pose_cw, turn), frame, settings,
+                                  settings.radius_px)
+            if outcome is not None:
+                outcome.source = IMAGE_ROTATION
     if outcome is None:
         outcome = guided_pose(local_map, ids, predicted_cw, frame, settings, settings.wide_radius_px, robust=True)
         if outcome is not None:
             outcome.source = WIDE_SEARCH
+            outcome = _agrees(outcome, previous_pose_cw, turn, settings)
     if outcome is None and previous is not None:
-        outcome = _from_previous_frame(local_map, ids, frame, previous, settings)
+        outcome = _agrees(_from_previous_frame(local_map, ids, frame, previous, settings), previous_pose_cw, turn,
+                          settings)
     if outcome is None:
         return None
     # A second guided pass from the refined pose finds the landmarks a poor prediction missed.
@@ -185,6 +205,36 @@ def track_frame(local_map: LocalMap, ids: np.ndarray, predicted_cw: np.ndarray, 
     local_map.visible[visible] += 1
     local_map.found[outcome.landmark[outcome.landmark >= 0]] += 1
     return outcome
+
+
+def image_rotation(last: FrameData, frame: FrameData, settings: TrackingSettings) -> np.ndarray | None:
+    """Rotation [3, 3] from ``last``'s camera to ``frame``'s fitted to their descriptor matches as if the camera
+    only turned (far points dominate its inliers); None with too few matches or inliers."""
+    pairs = match_mutual_nn(last.descriptors, frame.descriptors, settings.max_distance, settings.ratio)
+    if len(pairs) < ROTATION_MIN_MATCHES:
+        return None
+    gate = ROTATION_FIT_PX / settings.focal
+    rotation, residuals = fit_rotation_ransac(last.points[pairs[:, 0]], frame.points[pairs[:, 1]], gate)
+    return rotation if np.count_nonzero(residuals < gate) >= ROTATION_MIN_MATCHES else None
+
+
+def turned(predicted_cw: np.ndarray, previous_pose_cw: np.ndarray, turn: np.ndarray) -> np.ndarray:
+    """The prediction with its rotation replaced by the previous pose's turned by ``turn`` (camera centre kept)."""
+    pose = np.eye(4)
+    pose[:3, :3] = turn @ previous_pose_cw[:3, :3]
+    pose[:3, 3] = -pose[:3, :3] @ camera_centre(predicted_cw)
+    return pose
+
+
+def _agrees(outcome: TrackOutcome | None, previous_pose_cw: np.ndarray | None, turn: np.ndarray | None,
+            settings: TrackingSettings) -> TrackOutcome | None:
+    """``outcome`` unless its rotation since the previous frame is further than ``image_rotation_deg`` from the
+    measured ``turn`` (a fallback's PnP on a few wide matches can lock onto a wrong pose)."""
+    if outcome is None or turn is None:
+        return outcome
+    step = outcome.pose_cw[:3, :3] @ previous_pose_cw[:3, :3].T
+    cosine = (np.trace(turn.T @ step) - 1.0) / 2.0
+    return outcome if np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))) <= settings.image_rotation_deg else None
 
 
 def _from_previous_frame(local_map: LocalMap, ids: np.ndarray, frame: FrameData,
