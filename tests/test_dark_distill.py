@@ -50,13 +50,13 @@ def test_pairs_are_a_function_of_the_step_and_the_student_sees_them_darker(image
     assert torch.equal(clean, seen)  # no darkening: the student sees what the teacher sees
 
 
-def test_the_student_learns_to_see_the_clean_heads_in_the_dark(teacher, images, shared_data):
+def test_the_student_learns_to_see_the_clean_heads_in_the_dark(teacher, images):
     student = copy.deepcopy(teacher)
     config = DarkDistillConfig(steps=40, batch=4, lr=2e-3, sizes=[SIZE], seed=1, dark_share=0.5)
     dark_before, clean_before = held_out_loss(student, teacher, images, config, batches=2)  # all darkened
     assert clean_before < 1e-6 < dark_before  # the same weights: equal on clean crops, apart on dark ones
     sampling = teacher.deform.strategy
-    rows = distill_dark(student, teacher, shared_data / "train_images" / "coco128", config, log=lambda _text: None)
+    rows = distill_dark(student, teacher, images, config, log=lambda _text: None)
     assert teacher.deform.strategy == sampling and student.deform.strategy == sampling
     dark_after, clean_after = held_out_loss(student, teacher, images, config, batches=2)
     assert len(rows) == 2 and all(np.isfinite(row["loss"]) for row in rows)

@@ -228,3 +228,16 @@ def test_distill_refuses_labels_without_descriptors(tmp_path: Path, shared_data:
                  "--steps", "1", "--threads", "1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--descriptors" in err[0]
+
+
+def test_a_run_is_fitted_to_its_minutes_from_the_pace_of_its_measured_steps():
+    import time
+
+    from toolkit.compression.distill import steps_within
+
+    now = time.perf_counter()
+    # began 10 s ago, 20 steps measured over the last 8 s: 0.4 s a step; 50 s of a 1-minute budget left
+    total, pace = steps_within(1.0, 10_000, 25, now - 10.0, now - 8.0, 20)
+    assert abs(pace - 0.4) < 0.01 and 145 <= total <= 150
+    assert steps_within(1.0, 100, 25, now - 10.0, now - 8.0, 20)[0] == 100  # never beyond the step cap
+    assert steps_within(0.1, 10_000, 25, now - 10.0, now - 8.0, 20)[0] == 26  # budget spent: stop after this step

@@ -16,16 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vo_runtime.matching import match_mutual_nn
-from vo_runtime.rotation_fit import fit_rotation_ransac
-
-MIN_MATCHES = 20      # fewer frame-to-frame matches: no rotation measured for this frame
-FIT_THRESHOLD_PX = 2.0  # inlier gate of the rotation fit, detector pixels
-
-
-def rotation_angle_deg(rotation: np.ndarray) -> float:
-    """Angle of a 3x3 rotation, degrees."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
+from vo_runtime.rotation_fit import rotation_angle_deg, rotation_between
 
 
 class MapProbation:
@@ -58,11 +49,9 @@ class MapProbation:
                      descriptors: np.ndarray, map_rotation: np.ndarray, focal: float) -> float | None:
         """Degrees between the map's rotation from the previous frame to this one (world-to-camera
         ``R_now @ R_previous.T``) and the rotation fitted to the two frames' matches; None with too few."""
-        pairs = match_mutual_nn(previous_descriptors, descriptors, self.max_distance, self.ratio)
-        if len(pairs) < MIN_MATCHES:
-            return None
-        fitted, _ = fit_rotation_ransac(previous_points[pairs[:, 0]], points[pairs[:, 1]], FIT_THRESHOLD_PX / focal)
-        return rotation_angle_deg(fitted.T @ map_rotation)
+        measured = rotation_between(previous_points, previous_descriptors, points, descriptors, focal,
+                                    self.max_distance, self.ratio)
+        return None if measured is None else rotation_angle_deg(measured[0].T @ map_rotation)
 
     def judge(self, value: float | None) -> bool:
         """Add one frame's disagreement; True when the map fails its probation (which then ends)."""

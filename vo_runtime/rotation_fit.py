@@ -10,7 +10,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from vo_runtime.matching import match_mutual_nn
+
 RANSAC_SAMPLES = 64
+MIN_MATCHES = 20        # fewer frame-to-frame matches: no rotation measured
+FIT_THRESHOLD_PX = 2.0  # inlier gate of the rotation fit, detector pixels
+
+
+def rotation_angle_deg(rotation: np.ndarray) -> float:
+    """Angle of a 3x3 rotation, degrees."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def bearings(points: np.ndarray) -> np.ndarray:
@@ -59,3 +68,17 @@ def fit_rotation_ransac(pts_a: np.ndarray, pts_b: np.ndarray, threshold: float,
     if np.count_nonzero(inliers) >= 2:
         best = fit_rotation(rays_a[inliers], rays_b[inliers])
     return best, rotation_residuals(best, rays_a, rays_b)
+
+
+def rotation_between(points_a: np.ndarray, descriptors_a: np.ndarray, points_b: np.ndarray,
+                     descriptors_b: np.ndarray, focal: float, max_distance: float,
+                     ratio: float | None) -> tuple[np.ndarray, int] | None:
+    """The rotation from view a's camera to view b's fitted to the two frames' descriptor matches (mutual nearest
+    neighbours under the VO's gates; normalised points [N, 2]) and how many matches it explains within
+    `FIT_THRESHOLD_PX`; None with fewer than `MIN_MATCHES` matches."""
+    pairs = match_mutual_nn(descriptors_a, descriptors_b, max_distance, ratio)
+    if len(pairs) < MIN_MATCHES:
+        return None
+    gate = FIT_THRESHOLD_PX / focal
+    rotation, residuals = fit_rotation_ransac(points_a[pairs[:, 0]], points_b[pairs[:, 1]], gate)
+    return rotation, int(np.count_nonzero(residuals < gate))

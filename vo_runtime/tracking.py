@@ -21,12 +21,10 @@ from vo_runtime.geometry import camera_centre, reprojection_errors, rvec_from_po
 from vo_runtime.localmap import LocalMap
 from vo_runtime.matching import match_by_projection, match_mutual_nn
 from vo_runtime.pose import ransac_pose, refine_pose, second_opinion
-from vo_runtime.rotation_fit import fit_rotation_ransac
+from vo_runtime.rotation_fit import MIN_MATCHES, rotation_angle_deg, rotation_between
 
 LOCAL_MAP, WIDE_SEARCH, PREVIOUS_FRAME, RELOCALISATION = "local map", "wide search", "previous frame", "relocalisation"
 IMAGE_ROTATION = "image rotation"  # the local map searched again from a pose turned by the frames' own rotation
-ROTATION_MIN_MATCHES = 20  # frame-to-frame matches (and rotation inliers) a measured rotation needs
-ROTATION_FIT_PX = 2.0      # the rotation fit's inlier gate, detector pixels
 
 
 @dataclass
@@ -209,13 +207,10 @@ def track_frame(local_map: LocalMap, ids: np.ndarray, predicted_cw: np.ndarray, 
 
 def image_rotation(last: FrameData, frame: FrameData, settings: TrackingSettings) -> np.ndarray | None:
     """Rotation [3, 3] from ``last``'s camera to ``frame``'s fitted to their descriptor matches as if the camera
-    only turned (far points dominate its inliers); None with too few matches or inliers."""
-    pairs = match_mutual_nn(last.descriptors, frame.descriptors, settings.max_distance, settings.ratio)
-    if len(pairs) < ROTATION_MIN_MATCHES:
-        return None
-    gate = ROTATION_FIT_PX / settings.focal
-    rotation, residuals = fit_rotation_ransac(last.points[pairs[:, 0]], frame.points[pairs[:, 1]], gate)
-    return rotation if np.count_nonzero(residuals < gate) >= ROTATION_MIN_MATCHES else None
+    only turned (far points dominate its inliers); None unless `MIN_MATCHES` matches agree with it."""
+    measured = rotation_between(last.points, last.descriptors, frame.points, frame.descriptors, settings.focal,
+                                settings.max_distance, settings.ratio)
+    return measured[0] if measured is not None and measured[1] >= MIN_MATCHES else None
 
 
 def turned(predicted_cw: np.ndarray, previous_pose_cw: np.ndarray, turn: np.ndarray) -> np.ndarray:
@@ -233,8 +228,7 @@ def _agrees(outcome: TrackOutcome | None, previous_pose_cw: np.ndarray | None, t
     if outcome is None or turn is None:
         return outcome
     step = outcome.pose_cw[:3, :3] @ previous_pose_cw[:3, :3].T
-    cosine = (np.trace(turn.T @ step) - 1.0) / 2.0
-    return outcome if np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))) <= settings.image_rotation_deg else None
+    return outcome if rotation_angle_deg(turn.T @ step) <= settings.image_rotation_deg else None
 
 
 def _from_previous_frame(local_map: LocalMap, ids: np.ndarray, frame: FrameData,

@@ -24,7 +24,7 @@ from torch import nn
 
 from models.featurenet import FeatureNet
 from toolkit.compression.distill import (distillation_loss, log_losses, optimiser_step, restore_sampling,
-                                         train_with_grid_sample)
+                                         steps_within, train_with_grid_sample)
 from toolkit.compression.images import find_images
 from toolkit.compression.slim import _load_gray, _view
 from toolkit.training.config import warmup_cosine
@@ -78,12 +78,11 @@ def _learning_rate(config: DarkDistillConfig, step: int, total: int) -> float:
     return warmup_cosine(config.lr, step, total, min(50, total // 10), config.lr_final_fraction)
 
 
-def distill_dark(student: FeatureNet, teacher: nn.Module, image_dir: str | Path, config: DarkDistillConfig,
+def distill_dark(student: FeatureNet, teacher: nn.Module, images: list[np.ndarray], config: DarkDistillConfig,
                  save=None, log=print) -> list[dict]:
-    """Train ``student`` on darkened crops towards ``teacher``'s heads on the clean crops; returns the loss log
-    (one row per 20 steps: the loss on dark and on clean crops apart). ``save(student, step)`` every
-    ``checkpoint_every`` steps and at the end."""
-    images = _load_gray(find_images(image_dir))
+    """Train ``student`` on darkened crops of ``images`` (grey uint8, `_load_gray`) towards ``teacher``'s heads on
+    the clean crops; returns the loss log (one row per 20 steps, the mean loss over all crops, dark and clean).
+    ``save(student, step)`` every ``checkpoint_every`` steps and at the end."""
     strategies = train_with_grid_sample([student, teacher])
     teacher = teacher.eval().requires_grad_(False)
     student = student.eval().requires_grad_(True)  # eval: BatchNorm keeps its running statistics
@@ -93,9 +92,7 @@ def distill_dark(student: FeatureNet, teacher: nn.Module, image_dir: str | Path,
         if step == 5:
             warm = time.perf_counter()
         if step == 25 and config.minutes > 0:  # fit the schedule to the time budget
-            now = time.perf_counter()
-            pace = (now - warm) / 20
-            total = max(26, min(config.steps, 25 + int((config.minutes * 60 - (now - began)) / pace)))
+            total, pace = steps_within(config.minutes, config.steps, step, began, warm, 20)
             log(f"{pace:.2f} s a step: {total} steps in {config.minutes:g} min")
         if step >= total:
             break
@@ -173,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
             "teacher_sha256": teacher_info.sha256, "step": step, "batch": config.batch, "lr": config.lr,
             "dark_share": config.dark_share, "sizes": config.sizes}})
 
-    distill_dark(student, teacher, args.images, config, save=save, log=lambda text: print(text, flush=True))
+    distill_dark(student, teacher, images, config, save=save, log=lambda text: print(text, flush=True))
     after = held_out_loss(student, teacher, images, config)
     print(f"held-out loss after: dark {after[0]:.4f}, clean {after[1]:.4f}", flush=True)
     print(f"wrote {args.output}")

@@ -75,6 +75,14 @@ def log_losses(rows: list[dict], running: list[float], step: int, every: int, lr
     log(f"step {step + 1} loss {rows[-1]['loss']:.4f} ({rows[-1]['seconds']:.0f} s)")
 
 
+def steps_within(minutes: float, max_steps: int, step: int, began: float, warm: float, measured: int) -> tuple[int, float]:
+    """Fit a run to a wall-clock budget at ``step``: (total steps, seconds a step), the pace read off the
+    ``measured`` steps since ``warm`` (workers started, kernels chosen), the run began at ``began``."""
+    now = time.perf_counter()
+    pace = (now - warm) / measured
+    return max(step + 1, min(max_steps, step + int((minutes * 60 - (now - began)) / pace))), pace
+
+
 def train_with_grid_sample(models: list[nn.Module]) -> dict[nn.Module, set[str]]:
     """Switch every deformable conv of ``models`` to grid_sample (the gather sampler's values, faster to train);
     returns what each used, for `restore_sampling`."""

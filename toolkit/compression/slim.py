@@ -24,7 +24,7 @@ from torch import nn
 
 from models.featurenet import FeatureNet, FeatureNetConfig
 from toolkit.compression.distill import (distillation_loss, log_losses, optimiser_step, restore_sampling,
-                                         train_with_grid_sample)
+                                         steps_within, train_with_grid_sample)
 from toolkit.compression.images import find_images
 from toolkit.errors import ToolkitError
 from toolkit.training.augment import AugmentConfig, photometric_augment
@@ -135,9 +135,7 @@ def distill_slim(student: FeatureNet, teacher: nn.Module, image_dir: str | Path,
         if step == 10:
             warm = time.perf_counter()  # workers started, kernels chosen: the pace from here on is the run's
         if step == 40 and config.minutes > 0:  # fit the schedule to the time budget
-            now = time.perf_counter()
-            pace = (now - warm) / 30
-            total = max(41, min(config.steps, 40 + int((config.minutes * 60 - (now - began)) / pace)))
+            total, pace = steps_within(config.minutes, config.steps, step, began, warm, 30)
             log(f"{pace * 1000:.0f} ms a step: {total} steps in {config.minutes:g} min")
         if step >= total:
             break
