@@ -6,6 +6,7 @@
     python bench/eval_vo.py --set keyframe_max_gap=6 --keypoints 500,1000,2000 --starts 0   # sensitivity
     python bench/eval_vo.py --size 320x240                      # every frame resized first (the speed setting)
     python bench/eval_vo.py --starts 0,25,50 --light normal     # each sequence from these first frames
+    python bench/eval_vo.py --stride 2                          # every second frame: a flight twice as fast
 
 Single runs of 20-200 frame clips move by tens of centimetres with any setting (docs/vo.md), so by default
 (``--starts study``) each sequence runs from several first frames (`STARTS`, the same lists as
@@ -96,9 +97,9 @@ def lit_frame(image: np.ndarray, light: str, start: int, index: int, draw: int =
 
 def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, config: VOConfig, artefact: Path,
             plot_dir: Path | None, size: tuple[int, int] | None = None, start: int = 0,
-            budget: tuple[int, tuple[int, int] | None] | None = None, seed: int = 0) -> dict:
+            budget: tuple[int, tuple[int, int] | None] | None = None, seed: int = 0, stride: int = 1) -> dict:
     sequence = open_sequence(sequence_dir)
-    frames, stamps = sequence.frames[start:], sequence.timestamps[start:]
+    frames, stamps = sequence.frames[start::stride], sequence.timestamps[start::stride]
     camera = sequence.camera
     if size is not None:  # frames resized to width x height, intrinsics scaled to match
         height, width = next(read_frames(sequence.frames[:1])).shape[:2]
@@ -110,14 +111,16 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, confi
     for index, image in enumerate(read_frames(frames)):
         if size is not None:
             image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-        vo.track(lit_frame(image, light, start, index, seed), stamps[index])
+        # a frame keeps its own noise draw whatever the stride: the same frames, only fewer of them
+        vo.track(lit_frame(image, light, start, index * stride, seed), stamps[index])
     vo.finish()  # a keyframe's mapping still on the worker thread (--set mapping_thread=true)
     results = vo.results
     states = [r.status for r in results]
     first = next((i for i, s in enumerate(states) if s not in (INITIALISING, SKIPPED)), len(states))
     after = states[first:]
-    row = {"sequence": sequence_dir.name + (f" from {start}" if start else "") + (f" noise {seed}" if seed else ""),
-           "name": sequence_dir.name, "start": start, "seed": seed,
+    row = {"sequence": sequence_dir.name + (f" from {start}" if start else "") + (f" noise {seed}" if seed else "")
+           + (f" every {stride}" if stride > 1 else ""),
+           "name": sequence_dir.name, "start": start, "seed": seed, "stride": stride,
            "features": features if features == "orb" else artefact.name,
            "keypoints": keypoints if features == "orb" else None, "light": light, "frames": len(states),
            "initialised_at": first, "tracked": sum(s in TRACKED_STATES for s in after), "after_init": len(after),
@@ -134,7 +137,7 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, confi
         row["ate"], row["rpe"] = report["ate_rmse_m"], report["rpe_rmse_m"]
         if plot_dir is not None:
             name = f"{sequence_dir.name}{f'_from{start}' if start else ''}_{row['features']}_{light}" + \
-                (f"_noise{seed}" if seed else "")
+                (f"_noise{seed}" if seed else "") + (f"_every{stride}" if stride > 1 else "")
             # the scored frames in TUM format, so that anyone can score them again with evo_ape
             (plot_dir / "trajectories").mkdir(exist_ok=True)
             write_trajectory(plot_dir / "trajectories" / f"{name}.txt", scored_results(results))
@@ -191,8 +194,9 @@ def study_starts(name: str, light: str, length: int) -> list[int]:
     return [v for v in starts if v == 0 or v < length - 20]
 
 
-def _reference(data: Path):
-    """(ground truth, layout, timestamps from ``start``) of a sequence by name, each sequence read once."""
+def _reference(data: Path, stride: int = 1):
+    """(ground truth, layout, timestamps of the frames run from ``start``) of a sequence by name, each sequence
+    read once."""
     opened: dict[str, tuple] = {}
 
     def reference(name: str, start: int) -> tuple:
@@ -200,7 +204,7 @@ def _reference(data: Path):
             sequence = open_sequence(data / name)
             opened[name] = (sequence_groundtruth(sequence), sequence.layout, list(sequence.timestamps))
         groundtruth, layout, stamps = opened[name]
-        return groundtruth, layout, stamps[start:]
+        return groundtruth, layout, stamps[start::stride]
     return reference
 
 
@@ -234,6 +238,8 @@ def main() -> int:
     parser.add_argument("--workers", type=int, default=1, help="runs in parallel, one process and thread each")
     parser.add_argument("--budget", help="N or N,COLUMNSxROWS: keep at most N keypoints a frame (any extractor), "
                         "spread over a grid of cells when given (round-robin by rank in the cell)")
+    parser.add_argument("--stride", type=int, default=1,
+                        help="run every N-th frame (from each start): the same flight N times as fast")
     parser.add_argument("--summary-only", action="store_true", help="print the summary, not every run's row")
     parser.add_argument("-o", "--output", type=Path)
     args = parser.parse_args()
@@ -246,6 +252,9 @@ def main() -> int:
     unknown = [light for light in args.light.split(",") if light not in LIGHTS]
     if unknown:
         print(f"error: --light {unknown[0]!r} is none of {', '.join(LIGHTS)}", file=sys.stderr)
+        return 2
+    if args.stride < 1:
+        print(f"error: --stride takes a positive number of frames, got {args.stride}", file=sys.stderr)
         return 2
     if args.seeds != "study" and (not args.seeds.isdigit() or int(args.seeds) < 1):
         print(f"error: --seeds takes a positive number of noise draws or study, got {args.seeds!r}", file=sys.stderr)
@@ -266,13 +275,14 @@ def main() -> int:
         artefact = args.artefact or default_artefact(*(size or (width, height)))
         for features in args.features.split(","):
             for light in args.light.split(","):
-                starts = (study_starts(name, light, len(sequence)) if args.starts == "study" else
-                          [v for v in map(int, args.starts.split(",")) if v == 0 or v < len(sequence) - 20])
+                frames_left = len(sequence) - 20 * (args.stride - 1)  # a start keeps >= 20 frames at any stride
+                starts = (study_starts(name, light, frames_left) if args.starts == "study" else
+                          [v for v in map(int, args.starts.split(",")) if v == 0 or v < frames_left - 20])
                 draws = (1 if light == "normal" else STUDY_SEEDS.get(name, 1) if args.seeds == "study"
                          else int(args.seeds))
                 for keypoints in [int(k) for k in args.keypoints.split(",")]:
                     jobs += [(args.data / name, features, light, keypoints, config, artefact, args.output, size, first,
-                              budget, seed) for first in starts for seed in range(draws)]
+                              budget, seed, args.stride) for first in starts for seed in range(draws)]
     if args.output is not None:
         args.output.mkdir(parents=True, exist_ok=True)
     if args.workers > 1:
@@ -287,7 +297,7 @@ def main() -> int:
     text = table(rows)
     if len(rows) > len({(r["name"], r["features"], r["light"], r["keypoints"]) for r in rows}):
         text = summary(rows) + ("" if args.summary_only else "\n\n" + text)
-    shared = shared_frames_summary(rows, _reference(args.data), short_names=SHORT_NAMES)
+    shared = shared_frames_summary(rows, _reference(args.data, args.stride), short_names=SHORT_NAMES)
     if shared:
         text += ("\n\nEach learned run against ORB's run of the same start, both scored on the frames both scored:"
                  "\n\n" + shared)

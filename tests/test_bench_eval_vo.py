@@ -19,7 +19,8 @@ ROOT = Path(__file__).resolve().parents[1]
     (["--sequences", "tum_fr2_desk_snippet", "--seeds", "0"], "error: --seeds"),
     (["--sequences", "tum_fr2_desk_snippet", "--seeds", "two"], "error: --seeds"),
     (["--sequences", "tum_fr2_desk_snippet", "--light", "normal,dusk"], "error: --light 'dusk'"),
-], ids=["unknown sequence", "mistyped --set", "no noise draws", "not a number of draws", "unknown light"])
+    (["--sequences", "tum_fr2_desk_snippet", "--stride", "0"], "error: --stride"),
+], ids=["unknown sequence", "mistyped --set", "no noise draws", "not a number of draws", "unknown light", "no stride"])
 def test_bad_input_is_one_error_line_before_any_run_and_writes_nothing(tmp_path, shared_data, args, says):
     output = tmp_path / "table"
     run = subprocess.run([sys.executable, str(ROOT / "bench" / "eval_vo.py"), "--data", str(shared_data), *args,
@@ -45,6 +46,25 @@ def test_each_noise_draw_is_a_run_of_its_own_against_orb_of_the_same_draw(tmp_pa
     assert learned[0]["ate"] != learned[1]["ate"] or learned[0]["tracked"] != learned[1]["tracked"]
     assert "| TUM fr2 desk | default_artefact | low | 2 of 2 |" in run.stdout
     assert len(list((output / "trajectories").glob("*_noise1.txt"))) == 2
+
+
+def test_a_stride_runs_every_nth_frame_with_each_frames_own_stamp(tmp_path, shared_data):
+    # KITTI 06 (51 frames) at stride 2 from frame 10: frames 10, 12, ..., 50, each scored at its own timestamp
+    sys.path.insert(0, str(ROOT))
+    from vo_runtime.datasets import open_sequence
+
+    output = tmp_path / "table"
+    name = "kitti_odom06_f000000-000050"
+    run = subprocess.run([sys.executable, str(ROOT / "bench" / "eval_vo.py"), "--data", str(shared_data),
+                          "--sequences", name, "--features", "orb", "--light", "normal", "--starts", "10",
+                          "--stride", "2", "-o", str(output)], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    [row] = json.loads((output / "results.json").read_text())["rows"]
+    assert row["stride"] == 2 and row["frames"] == 21 and row["sequence"].endswith("from 10 every 2")
+    [trajectory] = (output / "trajectories").glob("*_every2.txt")
+    stamps = np.loadtxt(trajectory, ndmin=2)[:, 0]
+    every_second = np.asarray(open_sequence(shared_data / name).timestamps[10::2])
+    assert len(stamps) >= 10 and np.all(np.isin(np.round(stamps, 6), np.round(every_second, 6)))
 
 
 def test_grain_is_one_grey_level_of_seeded_noise_at_normal_lights_starts():
