@@ -14,8 +14,8 @@ from vo_runtime.config import VOResult
 from vo_runtime.geometry import invert_pose
 from vo_runtime.keyframe_pose import epipolar_matches, refine_with_epipolar
 from vo_runtime.localmap import Keyframe
-from vo_runtime.mapping import (cull_landmarks, local_bundle_adjustment, observe_in_neighbours, refresh_landmarks,
-                                triangulate_new_landmarks)
+from vo_runtime.mapping import (consolidate_map, cull_landmarks, local_bundle_adjustment, observe_in_neighbours,
+                                refresh_landmarks, triangulate_new_landmarks)
 from vo_runtime.refine import align_rows
 from vo_runtime.tracking import LOCAL_MAP, FrameData
 
@@ -67,6 +67,9 @@ class KeyframeUpkeep:
                               self._align if self._aligner is not None else None)
         for moved in local_bundle_adjustment(self.map, number, mapping, focal):
             self._follow_keyframe(moved)
+        if number + 1 == mapping.consolidate_keyframes:
+            for moved in consolidate_map(self.map, mapping, focal):
+                self._follow_keyframe(moved)
         cull_landmarks(self.map, number, mapping)
         self._previous = (frame, keyframe.landmark)  # the adjustment may have dropped observations
         self._set_reference(number)
