@@ -76,9 +76,10 @@ class MappingConfig:
     # Once a map has this many keyframes, one adjustment over all of them with only its first and newest
     # keyframe fixed (`consolidate_map`; 0: never). The local adjustment never moves a map's first two keyframes,
     # so the first baseline's own error stays in the map and in the poses of the frames anchored to them (the
-    # first 20 scored frames of the dark drone runs from 20-90 hold a quarter of their ATE). Off: 10 against 0,
-    # the drone's 30 mid-flight runs 0.99x dark and onboard, 40 dark take-offs 0.92x [0.79, 1.13], 40 onboard
-    # take-offs 1.16x [0.88, 1.70] (docs/vo_euroc.md).
+    # first 20 scored frames of the dark drone runs hold a quarter of their ATE). Off: at 20 the drone clip gains
+    # in every light (18 starts x 3 draws: dark 0.99x, onboard 0.97x [0.95, 0.99], normal 0.98x; the take-offs
+    # 0.96x / 0.91x) but KITTI 07 in the dark loses (5 starts x 3 draws: 1.27x [1.11, 1.44]); at 10 the onboard
+    # take-off loses (1.16x) (docs/vo_euroc.md).
     consolidate_keyframes: int = 0
     ba_iterations: int = 10              # Levenberg-Marquardt steps at most ...
     # ... or until a step lowers the robust cost by less than this share. 1e-3 instead of 1e-6 cut the
