@@ -273,9 +273,9 @@ def main() -> int:
             return 2
         height, width = frame_size(sequence.camera, sequence.frames)
         artefact = args.artefact or default_artefact(*(size or (width, height)))
+        frames_left = len(sequence) - 20 * (args.stride - 1)  # a start keeps >= 20 frames at any stride
         for features in args.features.split(","):
             for light in args.light.split(","):
-                frames_left = len(sequence) - 20 * (args.stride - 1)  # a start keeps >= 20 frames at any stride
                 starts = (study_starts(name, light, frames_left) if args.starts == "study" else
                           [v for v in map(int, args.starts.split(",")) if v == 0 or v < frames_left - 20])
                 draws = (1 if light == "normal" else STUDY_SEEDS.get(name, 1) if args.seeds == "study"
