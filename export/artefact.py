@@ -14,6 +14,7 @@ from pathlib import Path
 import onnx
 import torch
 
+from export.channel_padding import pad_pooled_channels
 from export.half import to_fp16
 from export.checks import check_against_profile, require_non_negative_gathers
 from export.graphs import DENSE_OUTPUTS, KEYPOINT_OUTPUTS, DenseGraph, KeypointGraph
@@ -130,11 +131,17 @@ def _export_into(claim: OutputClaim, options: ExportOptions, profile: TargetProf
     dense_export = export_onnx(dense_module, dummy, profile.max_opset, DENSE_OUTPUTS)
     deployed = dense_export if options.dense else keypoint_export
     check_against_profile(deployed.model, profile)
+    # The CPU's channel blocks (the same values, fewer layout conversions); the parity run below checks them.
+    keypoint_fp32, padded = pad_pooled_channels(keypoint_export.model, profile.channel_multiple)
+    dense_fp32, _ = pad_pooled_channels(dense_export.model, profile.channel_multiple)
+    if padded:
+        log("padded with zero channels for the CPU's blocks: " + ", ".join(
+            f"{chain.producer} {chain.channels} -> {chain.padded}" for chain in padded))
 
     # On the TX2, FP16 is a TensorRT build flag on the FP32 graph; on the CPU the file itself becomes FP16.
     onnx_fp16 = precision == "fp16" and profile.runtime.startswith("onnxruntime")
-    keypoint_model = to_fp16(keypoint_export.model) if onnx_fp16 else keypoint_export.model
-    dense_model = to_fp16(dense_export.model) if onnx_fp16 else dense_export.model
+    keypoint_model = to_fp16(keypoint_fp32) if onnx_fp16 else keypoint_fp32
+    dense_model = to_fp16(dense_fp32) if onnx_fp16 else dense_fp32
     final_model = dense_model if options.dense else keypoint_model
     graph_label = f"the {'fp16' if onnx_fp16 else 'fp32'} {'dense' if options.dense else 'keypoint'} graph"
     checker = check_before_writing(final_model, graph_label)  # before the parity run: it takes milliseconds
@@ -168,7 +175,9 @@ def _export_into(claim: OutputClaim, options: ExportOptions, profile: TargetProf
             "onnx": {"file": MODEL_NAME, "sha256": sha256_file(staging / MODEL_NAME), "opset": profile.max_opset,
                      "nodes_before_simplify": deployed.nodes_before_simplify,
                      "nodes_after_simplify": deployed.nodes_after_simplify, "simplifier": deployed.simplifier,
-                     "op_types": op_histogram(final_model), "checker": checker},
+                     "op_types": op_histogram(final_model), "checker": checker,
+                     "channel_padding": {"multiple": profile.channel_multiple,
+                                         "chains": [chain.to_dict() for chain in padded]}},
             "input": {"name": "image", "shape": [1, 1, height, width], "dtype": "float32", "layout": "NCHW",
                       "color": "gray", "normalisation": {"scale": 1.0 / 255.0, "offset": 0.0},
                       "resize": "cv2.INTER_AREA to the input shape", "resize_policy": "resize"},

@@ -36,6 +36,9 @@ class TargetProfile:
     op_constraints: dict[str, str] = field(default_factory=dict)
     hardware: dict[str, Any] = field(default_factory=dict)
     source: str = ""
+    # Convolution widths around a max-pool padded with zero channels to a multiple of this
+    # (`export.channel_padding`); 1: none.
+    channel_multiple: int = 1
 
     @property
     def elu_form(self) -> str:
@@ -105,4 +108,5 @@ def load_profile(name_or_path: str | Path) -> TargetProfile:
         op_constraints=dict(constraints),
         hardware=dict(hardware),
         source=str(path),
+        channel_multiple=fields.whole("channel_multiple", 1, 256) if "channel_multiple" in fields.table else 1,
     )
