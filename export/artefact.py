@@ -133,7 +133,8 @@ def _export_into(claim: OutputClaim, options: ExportOptions, profile: TargetProf
     check_against_profile(deployed.model, profile)
     # The CPU's channel blocks (the same values, fewer layout conversions); the parity run below checks them.
     keypoint_fp32, padded = pad_pooled_channels(keypoint_export.model, profile.channel_multiple)
-    dense_fp32, _ = pad_pooled_channels(dense_export.model, profile.channel_multiple)
+    dense_fp32, dense_padded = pad_pooled_channels(dense_export.model, profile.channel_multiple)
+    padded = dense_padded if options.dense else padded
     if padded:
         log("padded with zero channels for the CPU's blocks: " + ", ".join(
             f"{chain.producer} {chain.channels} -> {chain.padded}" for chain in padded))

@@ -106,3 +106,26 @@ def test_the_drone_cameras_artefact_carries_its_padding() -> None:
     widths = {t.name: t.dims[0] for t in model.graph.initializer if len(t.dims) == 4}
     producer = next(n for n in model.graph.node if n.name == padding["chains"][0]["producer"])
     assert widths[producer.input[1]] == 32
+
+
+@pytest.mark.parametrize("target, dense", [("x86-cpu", False), ("x86-cpu", True), ("tx2", False)])
+def test_export_pads_the_slim_network_for_the_cpu_only(target: str, dense: bool, tmp_path) -> None:
+    # The slim checkpoint's second stage is 24 channels wide with a max-pool after it; the export's parity run
+    # (against PyTorch) passes on the padded graph, and the manifest names what was padded.
+    import json
+
+    from toolkit.cli import main
+
+    out = tmp_path / f"{target}-{dense}"
+    args = ["export", "--target", target, "--checkpoint", "slim-relu", "--input-size", "120x160", "-o", str(out)]
+    assert main(args + (["--dense"] if dense else [])) == 0
+    padding = json.loads((out / "manifest.json").read_text())["onnx"]["channel_padding"]
+    expected = [(24, 32)] if target == "x86-cpu" else []
+    assert [(chain["channels"], chain["padded"]) for chain in padding["chains"]] == expected
+    model = onnx.load(str(out / "model.onnx"))
+    widths = {t.name: t.dims[0] for t in model.graph.initializer if len(t.dims) == 4 and t.dims[1] != 1}
+    if target == "x86-cpu":
+        producer = next(node for node in model.graph.node if node.name == padding["chains"][0]["producer"])
+        assert widths[producer.input[1]] == 32 and 24 not in widths.values()
+    else:
+        assert 24 in widths.values()
