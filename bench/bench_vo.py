@@ -105,8 +105,12 @@ def main() -> int:
                 ("default, no travel ck", default, False, 0, "off"),  # what the travel check costs
                 ("default + thread", default, True, 0, on),  # mapping on a second thread
                 ("default + ahead", default, False, AHEAD, on)]  # the network 2 frames ahead on a second thread
-        runs += [(Path(a).name, FeatureExtractor(a, threads=1), False, 0, on) for a in args.artefact]
-        runs += [(Path(a).name + " + ahead", FeatureExtractor(a, threads=1), False, AHEAD, on) for a in args.artefact]
+        # Rows named by folder, or by the path given when two folders share a name (an artefact against its re-export).
+        names = [Path(a).name for a in args.artefact]
+        names = names if len(set(names)) == len(names) else [str(a) for a in args.artefact]
+        runs += [(name, FeatureExtractor(a, threads=1), False, 0, on) for name, a in zip(names, args.artefact)]
+        runs += [(name + " + ahead", FeatureExtractor(a, threads=1), False, AHEAD, on)
+                 for name, a in zip(names, args.artefact)]
         rows = [max((run(name, ex, frames, camera, sequence.timestamps, threaded, ahead, check)
                      for _ in range(args.repeat)), key=lambda row: row["fps"])
                 for name, ex, threaded, ahead, check in runs]
