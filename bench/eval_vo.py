@@ -53,6 +53,7 @@ from vo_runtime.lowlight import PRESETS  # noqa: E402
 from vo_runtime.odometry import INITIALISING, SKIPPED, TRACKED_STATES  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
 from vo_runtime.trajectory import write_trajectory  # noqa: E402
+from bench.vo_peers import PeerExtractor, is_peer  # noqa: E402
 from bench.vo_shared_frames import geometric_mean, shared_frames_summary  # noqa: E402
 
 SEQUENCES = ("kitti_odom06_f000000-000050", "kitti_odom07_f000000-000159", "tum_fr2_desk_snippet",
@@ -104,7 +105,10 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, confi
     if size is not None:  # frames resized to width x height, intrinsics scaled to match
         height, width = next(read_frames(sequence.frames[:1])).shape[:2]
         camera = camera.resized((width, height), size)
-    extractor = OrbExtractor(keypoints) if features == "orb" else FeatureExtractor(artefact, threads=1)
+    if is_peer(features):  # XFeat or the teacher, in PyTorch (bench/vo_peers.py)
+        extractor = PeerExtractor(features)
+    else:
+        extractor = OrbExtractor(keypoints) if features == "orb" else FeatureExtractor(artefact, threads=1)
     if budget is not None:  # at most N keypoints a frame, spread over a grid (KeypointBudget)
         extractor = KeypointBudget(extractor, *budget)
     vo = VisualOdometry(extractor, camera, config)
@@ -121,7 +125,7 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, confi
     row = {"sequence": sequence_dir.name + (f" from {start}" if start else "") + (f" noise {seed}" if seed else "")
            + (f" every {stride}" if stride > 1 else ""),
            "name": sequence_dir.name, "start": start, "seed": seed, "stride": stride,
-           "features": features if features == "orb" else artefact.name,
+           "features": features if features == "orb" or is_peer(features) else artefact.name,
            "keypoints": keypoints if features == "orb" else None, "light": light, "frames": len(states),
            "initialised_at": first, "tracked": sum(s in TRACKED_STATES for s in after), "after_init": len(after),
            "states": {s: states.count(s) for s in dict.fromkeys(states)},
@@ -221,7 +225,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=ROOT.parent / "shared/data")
     parser.add_argument("--sequences", default=",".join(SEQUENCES))
-    parser.add_argument("--features", default="artefact,orb", help="artefact and/or orb")
+    parser.add_argument("--features", default="artefact,orb",
+                        help="artefact, orb and/or the learned peers xfeat, teacher:alike-n (PyTorch; bench/vo_peers.py)")
     parser.add_argument("--artefact", type=Path, default=None,
                         help="default: the shipped artefact for each sequence's camera (default_artefact)")
     parser.add_argument("--light", default="normal,low,onboard",
@@ -252,6 +257,10 @@ def main() -> int:
     unknown = [light for light in args.light.split(",") if light not in LIGHTS]
     if unknown:
         print(f"error: --light {unknown[0]!r} is none of {', '.join(LIGHTS)}", file=sys.stderr)
+        return 2
+    odd = [f for f in args.features.split(",") if f not in ("artefact", "orb") and not is_peer(f)]
+    if odd:
+        print(f"error: --features {odd[0]!r} is none of artefact, orb, xfeat, teacher:NAME", file=sys.stderr)
         return 2
     if args.stride < 1:
         print(f"error: --stride takes a positive number of frames, got {args.stride}", file=sys.stderr)

@@ -20,7 +20,9 @@ ROOT = Path(__file__).resolve().parents[1]
     (["--sequences", "tum_fr2_desk_snippet", "--seeds", "two"], "error: --seeds"),
     (["--sequences", "tum_fr2_desk_snippet", "--light", "normal,dusk"], "error: --light 'dusk'"),
     (["--sequences", "tum_fr2_desk_snippet", "--stride", "0"], "error: --stride"),
-], ids=["unknown sequence", "mistyped --set", "no noise draws", "not a number of draws", "unknown light", "no stride"])
+    (["--sequences", "tum_fr2_desk_snippet", "--features", "artefact,sift"], "error: --features 'sift'"),
+], ids=["unknown sequence", "mistyped --set", "no noise draws", "not a number of draws", "unknown light", "no stride",
+        "unknown features"])
 def test_bad_input_is_one_error_line_before_any_run_and_writes_nothing(tmp_path, shared_data, args, says):
     output = tmp_path / "table"
     run = subprocess.run([sys.executable, str(ROOT / "bench" / "eval_vo.py"), "--data", str(shared_data), *args,
@@ -83,3 +85,21 @@ def test_grain_is_one_grey_level_of_seeded_noise_at_normal_lights_starts():
     assert grainy[:, :4].max() <= 4 and grainy[:, -4:].min() >= 251
     name = "kitti_odom07_f000000-000159"
     assert study_starts(name, "grain", 160) == study_starts(name, "normal", 160) == list(STARTS["normal"][name])
+
+
+def test_a_learned_peer_runs_in_the_vo_with_unit_descriptors_in_score_order(shared_data):
+    # XFeat (bench/vo_peers.py) on a drone frame: its own detector, unit-norm descriptors for the VO's matcher,
+    # strongest first, and scores that weigh nothing in the pose fit (as ORB's).
+    sys.path.insert(0, str(ROOT))
+    from bench.vo_peers import PeerExtractor, is_peer
+    from vo_runtime.datasets import open_sequence
+    from vo_runtime.sequence import read_frames
+
+    assert is_peer("xfeat") and is_peer("teacher:alike-n") and not is_peer("orb") and not is_peer("artefact")
+    frame = next(read_frames(open_sequence(shared_data / "euroc_mh05_f000000-000199").frames[100:101]))
+    features = PeerExtractor("xfeat", keypoints=300)(frame)
+    assert 100 < len(features) <= 300 and features.descriptors.shape[1] == 64
+    assert np.allclose(np.linalg.norm(features.descriptors, axis=1), 1.0, atol=1e-5)
+    assert np.all(np.diff(features.scores) <= 0) and not features.scores_predict_error
+    height, width = frame.shape[:2]
+    assert features.keypoints[:, 0].max() < width and features.keypoints[:, 1].max() < height
