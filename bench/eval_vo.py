@@ -53,7 +53,7 @@ from vo_runtime.lowlight import PRESETS  # noqa: E402
 from vo_runtime.odometry import INITIALISING, SKIPPED, TRACKED_STATES  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
 from vo_runtime.trajectory import write_trajectory  # noqa: E402
-from bench.vo_peers import PeerExtractor, is_peer  # noqa: E402
+from bench.vo_peers import PEER_KEYPOINTS, PeerExtractor, is_peer  # noqa: E402
 from bench.vo_shared_frames import geometric_mean, shared_frames_summary  # noqa: E402
 
 SEQUENCES = ("kitti_odom06_f000000-000050", "kitti_odom07_f000000-000159", "tum_fr2_desk_snippet",
@@ -126,7 +126,8 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, confi
            + (f" every {stride}" if stride > 1 else ""),
            "name": sequence_dir.name, "start": start, "seed": seed, "stride": stride,
            "features": features if features == "orb" or is_peer(features) else artefact.name,
-           "keypoints": keypoints if features == "orb" else None, "light": light, "frames": len(states),
+           "keypoints": keypoints if features == "orb" else PEER_KEYPOINTS if is_peer(features) else None,
+           "light": light, "frames": len(states),
            "initialised_at": first, "tracked": sum(s in TRACKED_STATES for s in after), "after_init": len(after),
            "states": {s: states.count(s) for s in dict.fromkeys(states)},
            "keyframes": sum(r.keyframe for r in results),

@@ -18,6 +18,8 @@ import numpy as np
 import onnx
 from onnx import numpy_helper
 
+from export.onnx_export import node_attribute
+
 # Ops that map a zero channel to a zero channel, one input, one output.
 ZERO_PRESERVING = ("Relu", "MaxPool")
 
@@ -33,13 +35,6 @@ class PaddedChain:
 
     def to_dict(self) -> dict:
         return {"producer": self.producer, "channels": self.channels, "padded": self.padded, "consumer": self.consumer}
-
-
-def _attribute(node: onnx.NodeProto, name: str, default):
-    for attribute in node.attribute:
-        if attribute.name == name:
-            return onnx.helper.get_attribute_value(attribute)
-    return default
 
 
 class _Graph:
@@ -67,6 +62,10 @@ class _Graph:
         name = node.input[position]
         self.initializers[name].CopyFrom(numpy_helper.from_array(values, name))
 
+    def paddable_bias(self, node: onnx.NodeProto) -> bool:
+        """Whether a convolution has no bias or one no other node reads (it can grow with the filters)."""
+        return len(node.input) <= 2 or not node.input[2] or self.weight(node, 2) is not None
+
     def only_consumer(self, tensor: str) -> onnx.NodeProto | None:
         readers = self.consumers.get(tensor, [])
         return readers[0] if len(readers) == 1 and tensor not in self.outputs else None
@@ -84,10 +83,9 @@ def _chain(graph: _Graph, producer: onnx.NodeProto, channels: int):
             weight = graph.weight(node, 1)
             if weight is None:
                 return None
-            group = _attribute(node, "group", 1)
+            group = node_attribute(node, "group", 1)
             if group == channels and weight.shape[:2] == (channels, 1):  # depthwise: its filters pad too
-                bias = graph.weight(node, 2) if len(node.input) > 2 else np.zeros(channels, weight.dtype)
-                if bias is None:
+                if not graph.paddable_bias(node):
                     return None
                 middle.append(node)
                 tensor = node.output[0]
@@ -126,29 +124,23 @@ def pad_pooled_channels(model: onnx.ModelProto, multiple: int) -> tuple[onnx.Mod
     chains = []
     for producer in list(padded_model.graph.node):
         weight = graph.weight(producer, 1) if producer.op_type == "Conv" else None
-        if weight is None or _attribute(producer, "group", 1) != 1 or weight.shape[0] % multiple == 0:
+        if weight is None or node_attribute(producer, "group", 1) != 1 or weight.shape[0] % multiple == 0:
             continue
         channels = weight.shape[0]
-        found = _chain(graph, producer, channels)
+        found = _chain(graph, producer, channels) if graph.paddable_bias(producer) else None
         if found is None or not any(node.op_type == "MaxPool" for node in found[0]):
-            continue
-        bias = graph.weight(producer, 2) if len(producer.input) > 2 else np.zeros(channels, weight.dtype)
-        if bias is None:
             continue
         middle, consumer = found
         extra = -channels % multiple
-        graph.set_weight(producer, 1, _pad_rows(weight, extra))
-        if len(producer.input) > 2:
-            graph.set_weight(producer, 2, _pad_rows(bias, extra))
-        for node in middle:
-            if node.op_type != "Conv":
-                continue
-            graph.set_weight(node, 1, _pad_rows(graph.weight(node, 1), extra))
-            if len(node.input) > 2:
-                graph.set_weight(node, 2, _pad_rows(graph.weight(node, 2), extra))
-            for attribute in node.attribute:
-                if attribute.name == "group":
-                    attribute.i = channels + extra
+        depthwise = [node for node in middle if node.op_type == "Conv"]
+        for node in [producer] + depthwise:  # zero filters, zero biases
+            for position in (1, 2):
+                values = graph.weight(node, position)
+                if values is not None:
+                    graph.set_weight(node, position, _pad_rows(values, extra))
+        for attribute in (attribute for node in depthwise for attribute in node.attribute):
+            if attribute.name == "group":
+                attribute.i = channels + extra
         graph.set_weight(consumer, 1, _pad_rows(graph.weight(consumer, 1), extra, axis=1))
         _set_channels(padded_model.graph, {producer.output[0]} | {node.output[0] for node in middle}, channels + extra)
         chains.append(PaddedChain(producer.name, channels, channels + extra, consumer.name))

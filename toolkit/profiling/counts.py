@@ -29,6 +29,8 @@ from fvcore.nn import FlopCountAnalysis
 from fvcore.nn.jit_handles import get_shape
 from torch import nn
 
+from export.onnx_export import node_attribute
+
 DEFORM_TAPS = 9
 
 # ONNX op type -> kind used by the roofline's efficiency factors.
@@ -210,18 +212,11 @@ def _tensor_shapes(model: onnx.ModelProto) -> dict[str, list[int]]:
     return shapes
 
 
-def _attribute(node: onnx.NodeProto, name: str, default):
-    for attr in node.attribute:
-        if attr.name == name:
-            return onnx.helper.get_attribute_value(attr)
-    return default
-
-
 def op_kind(node: onnx.NodeProto, weight_shape: list[int] | None) -> str:
     """Roofline kind of a node: one of `KINDS`."""
     op = node.op_type
     if op == "Conv":
-        group = int(_attribute(node, "group", 1))
+        group = int(node_attribute(node, "group", 1))
         if weight_shape and group > 1 and weight_shape[1] == 1:
             return "depthwise"
         if weight_shape and weight_shape[2:] == [1, 1]:
@@ -255,11 +250,11 @@ def _node_macs(node: onnx.NodeProto, shapes: dict[str, list[int]], out_elements:
         return out_elements * shapes[node.input[0]][-1]
     if op == "Gemm":
         a = shapes[node.input[0]]
-        return out_elements * (a[0] if _attribute(node, "transA", 0) else a[-1])
+        return out_elements * (a[0] if node_attribute(node, "transA", 0) else a[-1])
     if op == "Softmax":
         return 3 * out_elements
     if op == "MaxPool":
-        return out_elements * int(math.prod(_attribute(node, "kernel_shape", [1])))
+        return out_elements * int(math.prod(node_attribute(node, "kernel_shape", [1])))
     if op in ("ReduceSum", "ReduceL2", "ReduceMean", "ReduceMax", "TopK"):
         return in_elements
     if op in ELEMENTWISE_OPS:
