@@ -13,9 +13,10 @@ ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "bench" / "compare_runs.py"
 
 
-def _row(start: int, seed: int, ate: float | None, features: str = "default_artefact", lost: int = 0) -> dict:
+def _row(start: int, seed: int, ate: float | None, features: str = "default_artefact", lost: int = 0,
+         initialised_at: int = 5) -> dict:
     return {"name": "kitti_odom07_f000000-000159", "features": features, "light": "low", "start": start,
-            "seed": seed, "ate": ate, "after_init": 100, "tracked": 100 - lost}
+            "seed": seed, "ate": ate, "after_init": 100, "tracked": 100 - lost, "initialised_at": initialised_at}
 
 
 def _write(path: Path, rows: list[dict]) -> Path:
@@ -63,6 +64,28 @@ def test_the_interval_resamples_starts_and_spans_their_spread(tmp_path):
     assert 0.5 <= low < 0.9 and 1.1 < high <= 2.0
 
 
+def test_split_delay_separates_runs_whose_base_started_later(tmp_path):
+    # ORB-like base: starts with the new run at starts 0 and 10 (ratio 0.5), 30 frames later at 20 and 30 (ratio 2).
+    late = {0: False, 10: False, 20: True, 30: True}
+    base = [_row(s, 0, 0.1, features="orb", initialised_at=38 if is_late else 9) for s, is_late in late.items()]
+    new = [_row(s, 0, 0.2 if is_late else 0.05, initialised_at=8) for s, is_late in late.items()]
+    args = (_write(tmp_path / "a.json", base), _write(tmp_path / "b.json", new), "--base-features", "orb",
+            "--new-features", "default_artefact")
+    whole = _compare(*args)
+    assert whole.returncode == 0, whole.stderr
+    assert _table_row(whole.stdout)[5].startswith("1.00x")  # 0.5 and 2 cancel in the geometric mean
+    split = _compare(*args, "--split-delay", "5")
+    assert split.returncode == 0, split.stderr
+    rows = {cells[1]: cells for cells in ([c.strip() for c in line.strip("|").split("|")]
+                                          for line in split.stdout.splitlines() if line.startswith("| kitti"))}
+    assert set(rows) == {"low, base within 5", "low, base later"}
+    assert rows["low, base within 5"][2] == "2" and rows["low, base within 5"][5] == "0.50x [0.50, 0.50]"
+    assert rows["low, base later"][2] == "2" and rows["low, base later"][5] == "2.00x [2.00, 2.00]"
+    # 30 frames later is "within 30": nothing is split off.
+    assert {line.split("|")[2].strip() for line in _compare(*args, "--split-delay", "30").stdout.splitlines()
+            if line.startswith("| kitti")} == {"low, base within 30"}
+
+
 @pytest.mark.parametrize("content, says", [
     (None, "cannot read"),
     ("{not json", "is not JSON"),
@@ -75,6 +98,18 @@ def test_bad_input_is_one_error_line_exit_2(tmp_path, content, says):
     if content is not None:
         new.write_text(content)
     run = _compare(base, new)
+    lines = run.stderr.strip().splitlines()
+    assert run.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ") and says in lines[0]
+    assert run.stdout == ""
+
+
+@pytest.mark.parametrize("delay, rows, says", [
+    ("-1", [_row(0, 0, 0.1)], "--split-delay takes a number of frames >= 0"),
+    ("5", [{k: v for k, v in _row(0, 0, 0.1).items() if k != "initialised_at"}], "needs each run's initialised_at"),
+], ids=["negative", "no initialised_at"])
+def test_bad_split_delay_is_one_error_line_exit_2(tmp_path, delay, rows, says):
+    run = _compare(_write(tmp_path / "a.json", rows), _write(tmp_path / "b.json", [_row(0, 0, 0.2)]),
+                   "--split-delay", delay)
     lines = run.stderr.strip().splitlines()
     assert run.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ") and says in lines[0]
     assert run.stdout == ""
