@@ -14,8 +14,8 @@ interval resamples starts (a start's draws share its frames; `vo_shared_frames.r
 ATE (no trajectory) cannot enter a ratio: the table counts those apart, with the frames lost after
 initialisation, since a setting that trades a lower ATE for failed runs is no gain.
 
-`--split-delay N` splits each row by when the base run built its first map: within N frames of the new run's, or
-later. Each run's ATE covers its own frames after initialisation, so a base that starts later is scored on a
+`--split-delay N` splits each row by when the base run built its first map: at most N frames after the new run's
+(or before it), or later than that. Each run's ATE covers its own frames after initialisation, so a base that starts later is scored on a
 shorter, later stretch of the flight (`vo_shared_frames.py`); the split shows how much of a ratio that is
 (docs/vo_euroc.md, "Where the dark row's 0.84x comes from").
 """
@@ -66,15 +66,15 @@ def pair_runs(base: list[dict], new: list[dict], base_features: str,
 
 def split_by_delay(groups: dict[tuple[str, str], list[tuple[dict, dict]]],
                    frames: int) -> dict[tuple[str, str], list[tuple[dict, dict]]]:
-    """Each (sequence, light) group split in two by ``initialised_at``: the base run's first map within
-    ``frames`` frames after the new run's, or later; ValueError when a row has no ``initialised_at``."""
+    """Each (sequence, light) group split in two by ``initialised_at``: the base run's first map at most
+    ``frames`` frames after the new run's (or before it), or later; ValueError when a row has no ``initialised_at``."""
     split: dict[tuple[str, str], list[tuple[dict, dict]]] = {}
     for (name, light), pairs in groups.items():
         for base, new in pairs:
             if not isinstance(base.get("initialised_at"), int) or not isinstance(new.get("initialised_at"), int):
                 raise ValueError("--split-delay needs each run's initialised_at (a results.json from bench/eval_vo.py)")
             later = base["initialised_at"] - new["initialised_at"] > frames
-            label = f"{light}, base {'later' if later else f'within {frames}'}"
+            label = f"{light}, base {'more than' if later else 'at most'} {frames} frames later"
             split.setdefault((name, label), []).append((base, new))
     return dict(sorted(split.items()))
 
@@ -111,7 +111,7 @@ def main() -> int:
     parser.add_argument("--base-features", help="features of the base run to compare (default: each name in both)")
     parser.add_argument("--new-features", help="features of the new run (default: the base's)")
     parser.add_argument("--split-delay", type=int, metavar="N",
-                        help="split each row by whether the base run's first map came within N frames of the new's")
+                        help="split each row by whether the base run's first map came more than N frames after the new's")
     args = parser.parse_args()
     if args.split_delay is not None and args.split_delay < 0:
         print("error: --split-delay takes a number of frames >= 0", file=sys.stderr)

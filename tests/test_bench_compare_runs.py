@@ -65,9 +65,11 @@ def test_the_interval_resamples_starts_and_spans_their_spread(tmp_path):
 
 
 def test_split_delay_separates_runs_whose_base_started_later(tmp_path):
-    # ORB-like base: starts with the new run at starts 0 and 10 (ratio 0.5), 30 frames later at 20 and 30 (ratio 2).
+    # ORB-like base: a frame after the new run at start 0 and before it at 10 (ratio 0.5), 30 frames after it at 20
+    # and 30 (ratio 2).
     late = {0: False, 10: False, 20: True, 30: True}
-    base = [_row(s, 0, 0.1, features="orb", initialised_at=38 if is_late else 9) for s, is_late in late.items()]
+    base = [_row(s, 0, 0.1, features="orb", initialised_at=38 if is_late else 9 - 7 * (s == 10))
+            for s, is_late in late.items()]
     new = [_row(s, 0, 0.2 if is_late else 0.05, initialised_at=8) for s, is_late in late.items()]
     args = (_write(tmp_path / "a.json", base), _write(tmp_path / "b.json", new), "--base-features", "orb",
             "--new-features", "default_artefact")
@@ -78,12 +80,12 @@ def test_split_delay_separates_runs_whose_base_started_later(tmp_path):
     assert split.returncode == 0, split.stderr
     rows = {cells[1]: cells for cells in ([c.strip() for c in line.strip("|").split("|")]
                                           for line in split.stdout.splitlines() if line.startswith("| kitti"))}
-    assert set(rows) == {"low, base within 5", "low, base later"}
-    assert rows["low, base within 5"][2] == "2" and rows["low, base within 5"][5] == "0.50x [0.50, 0.50]"
-    assert rows["low, base later"][2] == "2" and rows["low, base later"][5] == "2.00x [2.00, 2.00]"
-    # 30 frames later is "within 30": nothing is split off.
+    assert set(rows) == {"low, base at most 5 frames later", "low, base more than 5 frames later"}
+    assert rows["low, base at most 5 frames later"][2] == "2" and rows["low, base at most 5 frames later"][5] == "0.50x [0.50, 0.50]"
+    assert rows["low, base more than 5 frames later"][2] == "2" and rows["low, base more than 5 frames later"][5] == "2.00x [2.00, 2.00]"
+    # 29 frames later is "at most 30": nothing is split off.
     assert {line.split("|")[2].strip() for line in _compare(*args, "--split-delay", "30").stdout.splitlines()
-            if line.startswith("| kitti")} == {"low, base within 30"}
+            if line.startswith("| kitti")} == {"low, base at most 30 frames later"}
 
 
 @pytest.mark.parametrize("content, says", [
