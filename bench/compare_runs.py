@@ -15,9 +15,9 @@ ATE (no trajectory) cannot enter a ratio: the table counts those apart, with the
 initialisation, since a setting that trades a lower ATE for failed runs is no gain.
 
 `--split-delay N` splits each row by when the base run built its first map: at most N frames after the new run's
-(or before it), or later than that. Each run's ATE covers its own frames after initialisation, so a base that starts later is scored on a
-shorter, later stretch of the flight (`vo_shared_frames.py`); the split shows how much of a ratio that is
-(docs/vo_euroc.md, "Where the dark row's 0.84x comes from").
+(or before it), or later than that. Each run's ATE covers its own frames after initialisation, so a base that
+starts later is scored on a shorter, later stretch of the flight (`vo_shared_frames.py`); the split shows how much
+of a ratio that is (docs/vo_euroc.md, "Where the dark row's 0.84x comes from").
 """
 from __future__ import annotations
 
@@ -111,7 +111,8 @@ def main() -> int:
     parser.add_argument("--base-features", help="features of the base run to compare (default: each name in both)")
     parser.add_argument("--new-features", help="features of the new run (default: the base's)")
     parser.add_argument("--split-delay", type=int, metavar="N",
-                        help="split each row by whether the base run's first map came more than N frames after the new's")
+                        help="split each row by whether the base run's first map came more than N frames after "
+                             "the new run's")
     args = parser.parse_args()
     if args.split_delay is not None and args.split_delay < 0:
         print("error: --split-delay takes a number of frames >= 0", file=sys.stderr)

@@ -28,6 +28,12 @@ def _compare(*args: object) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(SCRIPT), *map(str, args)], capture_output=True, text=True, timeout=60)
 
 
+def _assert_one_error_line(run: subprocess.CompletedProcess, says: str) -> None:
+    lines = run.stderr.strip().splitlines()
+    assert run.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ") and says in lines[0]
+    assert run.stdout == ""
+
+
 def _table_row(stdout: str) -> list[str]:
     line = next(line for line in stdout.splitlines() if line.startswith("| kitti_odom07"))
     return [cell.strip() for cell in line.strip("|").split("|")]
@@ -80,9 +86,10 @@ def test_split_delay_separates_runs_whose_base_started_later(tmp_path):
     assert split.returncode == 0, split.stderr
     rows = {cells[1]: cells for cells in ([c.strip() for c in line.strip("|").split("|")]
                                           for line in split.stdout.splitlines() if line.startswith("| kitti"))}
-    assert set(rows) == {"low, base at most 5 frames later", "low, base more than 5 frames later"}
-    assert rows["low, base at most 5 frames later"][2] == "2" and rows["low, base at most 5 frames later"][5] == "0.50x [0.50, 0.50]"
-    assert rows["low, base more than 5 frames later"][2] == "2" and rows["low, base more than 5 frames later"][5] == "2.00x [2.00, 2.00]"
+    together, later = "low, base at most 5 frames later", "low, base more than 5 frames later"
+    assert set(rows) == {together, later}
+    assert rows[together][2] == "2" and rows[together][5] == "0.50x [0.50, 0.50]"
+    assert rows[later][2] == "2" and rows[later][5] == "2.00x [2.00, 2.00]"
     # 29 frames later is "at most 30": nothing is split off.
     assert {line.split("|")[2].strip() for line in _compare(*args, "--split-delay", "30").stdout.splitlines()
             if line.startswith("| kitti")} == {"low, base at most 30 frames later"}
@@ -99,10 +106,7 @@ def test_bad_input_is_one_error_line_exit_2(tmp_path, content, says):
     new = tmp_path / "b.json"
     if content is not None:
         new.write_text(content)
-    run = _compare(base, new)
-    lines = run.stderr.strip().splitlines()
-    assert run.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ") and says in lines[0]
-    assert run.stdout == ""
+    _assert_one_error_line(_compare(base, new), says)
 
 
 @pytest.mark.parametrize("delay, rows, says", [
@@ -112,6 +116,4 @@ def test_bad_input_is_one_error_line_exit_2(tmp_path, content, says):
 def test_bad_split_delay_is_one_error_line_exit_2(tmp_path, delay, rows, says):
     run = _compare(_write(tmp_path / "a.json", rows), _write(tmp_path / "b.json", [_row(0, 0, 0.2)]),
                    "--split-delay", delay)
-    lines = run.stderr.strip().splitlines()
-    assert run.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: ") and says in lines[0]
-    assert run.stdout == ""
+    _assert_one_error_line(run, says)
