@@ -186,9 +186,10 @@ def test_frame_without_features_is_skipped_and_pose_held():
 
 def test_unmatched_frame_loses_tracking_then_reinitialises_at_the_old_speed():
     poses = straight_then_turn(60)
-    # Relocalisation and the motion model after a loss off: the only way back is a fresh initialisation.
+    # Relocalisation and the motion model after a loss off: the only way back is a fresh initialisation (the
+    # young map's discard off too: it is how a map older than young_map_frames comes back, test_vo_young_map.py).
     vo = run(SyntheticExtractor(poses, scramble=frozenset({30})), 60,
-             VOConfig(relocalise_keyframes=0, lost_predict_frames=0))
+             VOConfig(relocalise_keyframes=0, lost_predict_frames=0, young_map_frames=0))
     statuses = [r.status for r in vo.results]
     assert statuses[30] == LOST
     assert REINITIALISED in statuses[31:]
@@ -212,7 +213,7 @@ def test_reinitialisation_scale_is_the_median_speed_before_the_loss(speed_frames
     for pose, position in zip(poses, np.cumsum(steps, axis=0)):
         pose[:3, 3] = position
     vo = run(SyntheticExtractor(poses, scramble=frozenset({30})), 60,
-             VOConfig(relocalise_keyframes=0, lost_predict_frames=0, speed_frames=speed_frames))
+             VOConfig(relocalise_keyframes=0, lost_predict_frames=0, speed_frames=speed_frames, young_map_frames=0))
     statuses = [r.status for r in vo.results]
     assert REINITIALISED in statuses[31:]
     est = np.array([r.pose[:3, 3] for r in vo.results])
@@ -236,7 +237,7 @@ def test_after_a_loss_the_motion_model_tracks_the_next_good_frame_against_the_ma
     assert rmse < 1e-3
     # Beyond lost_predict_frames the prediction is no longer trusted: a fresh initialisation instead.
     vo = run(SyntheticExtractor(poses, scramble=frozenset(bad)), 60,
-             VOConfig(relocalise_keyframes=0, lost_predict_frames=len(bad)))
+             VOConfig(relocalise_keyframes=0, lost_predict_frames=len(bad), young_map_frames=0))
     assert REINITIALISED in [r.status for r in vo.results]
 
 

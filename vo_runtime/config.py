@@ -58,6 +58,12 @@ class VOConfig:
     probation_frames: int = 15
     probation_max_deg: float = 1.0
     probation_max_discards: int = 2
+    # A first map lost (every search and relocalisation failed) at most this many frames after its first keyframe
+    # is discarded as one that failed its probation (the same budget of probation_max_discards), instead of a new
+    # map being scaled by its speed: its frames go back to ``initialising`` and the next map is a first map, with
+    # its own baseline's unit and the first map's gates. ORB-SLAM2 resets a map lost while it holds five keyframes
+    # or fewer; this VO keyframes every 1-4 frames, so its limit is in frames. 0: off.
+    young_map_frames: int = 40
     min_triangulation_deg: float = 1.0   # rays closer than this give no landmark
     search_radius_px: float = 15.0       # guided matching around a landmark's predicted position
     wide_search_radius_px: float = 45.0  # ... when the first search explains too little
@@ -168,8 +174,10 @@ class VOConfig:
             raise VORuntimeError("align_window_px must be >= 0, align_max_shift > 0 and align_gain >= 1")
         if self.landmark_variance < 0 or self.image_rotation_deg < 0:
             raise VORuntimeError("landmark_variance and image_rotation_deg must be >= 0")
-        if self.probation_frames < 0 or self.probation_max_deg <= 0 or self.probation_max_discards < 0:
-            raise VORuntimeError("probation_frames and probation_max_discards must be >= 0, probation_max_deg > 0")
+        if self.probation_frames < 0 or self.probation_max_deg <= 0 or self.probation_max_discards < 0 \
+                or self.young_map_frames < 0:
+            raise VORuntimeError("probation_frames, probation_max_discards and young_map_frames must be >= 0, "
+                                 "probation_max_deg > 0")
         if self.travel_check_gap < 0 or self.travel_check_frames < 1 or self.travel_check_min_inliers < 5 \
                 or self.travel_check_max_deg <= 0 or self.travel_check_consistency_deg <= 0 \
                 or not 0 <= self.travel_check_match_distance <= 2:

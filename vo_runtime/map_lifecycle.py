@@ -1,5 +1,6 @@
 """`MapLifecycle`: how `MonoVO` starts a map (a two-view initialisation that succeeded) and throws one away (a
-first map that failed its probation, `probation.py`; a map the travel check found broken, `travel_check.py`).
+first map that failed its probation, `probation.py`, or was lost while young, ``VOConfig.young_map_frames``; a map
+the travel check found broken, `travel_check.py`).
 
 A base class of `MonoVO` only, over its state (``self.map``, ``self._poses_cw``, ``self._probation``, ...), as
 `KeyframeUpkeep` is: split from odometry.py so that file keeps the frame-by-frame states.
@@ -19,6 +20,33 @@ class MapLifecycle:
     def _discard_map(self, index: int, frame: FrameData, result: VOResult) -> None:
         """The first map failed its probation: forget it as if it had never been built. Its frames go back to
         ``initialising`` with the reference frame's pose, and the next initialisation measures from this frame."""
+        median = float(np.median(self._probation.values))
+        self._retract_map(index, result)
+        self._initialiser.restart(index, frame)
+        result.problem = (f"map discarded: its frame-to-frame rotations disagreed with the frames' own by {median:.2f} "
+                          f"deg (median of {len(self._probation.values)} frames)")
+
+    def _young_map_lost(self, index: int) -> bool:
+        """The current map is a first map lost within ``VOConfig.young_map_frames`` frames of its first keyframe
+        that the motion model no longer searches for (``lost_predict_frames``), and the run may still discard a
+        map."""
+        cfg = self.config
+        return (cfg.young_map_frames > 0 and self.map is not None and self._map_is_first and self._lost_since >= 0
+                and self._lost_since - self.map.keyframes[0].frame <= cfg.young_map_frames
+                and index - self._last_tracked > cfg.lost_predict_frames
+                and self._probation.discards < self._probation.max_discards)
+
+    def _discard_young_map(self, index: int, result: VOResult) -> None:
+        """A young first map was lost (`_young_map_lost`): forget it as a failed probation would, so that the
+        next map is a first one. The initialiser keeps the tracks it has gathered since the loss."""
+        since = self._lost_since - self.map.keyframes[0].frame
+        self._probation.discards += 1
+        self._retract_map(index, result)
+        result.problem = f"map discarded: lost {since} frames after it was built"
+
+    def _retract_map(self, index: int, result: VOResult) -> None:
+        """Forget the map as if it had never been built: its frames up to ``index`` go back to ``initialising``
+        with the map's reference frame's pose, and no speed is kept (the next map is a first map)."""
         first = self.map.keyframes[0].frame  # the map's reference frame
         held = self._poses_cw[first].copy()
         for number in range(first + 1, index + 1):
@@ -26,12 +54,9 @@ class MapLifecycle:
             if number < len(self.results):
                 earlier = self.results[number]
                 earlier.pose, earlier.status, earlier.tracked_by, earlier.keyframe = invert_pose(held), INITIALISING, None, False
-        median = float(np.median(self._probation.values))
         self._forget_map()
-        self._initialiser.restart(index, frame)
+        self._probation.end()
         result.status, result.tracked_by, result.map_dropped = INITIALISING, None, True
-        result.problem = (f"map discarded: its frame-to-frame rotations disagreed with the frames' own by {median:.2f} "
-                          f"deg (median of {len(self._probation.values)} frames)")
 
     def _travel_broken(self, index: int, frame: FrameData, landmark: np.ndarray, pose_cw: np.ndarray,
                        result: VOResult) -> bool:
@@ -91,6 +116,7 @@ class MapLifecycle:
         self._lost_since = -1
         self._velocity = per_frame_motion(self._poses_cw[index] @ invert_pose(self._poses_cw[outcome.reference_index]),
                                           index - outcome.reference_index)
+        self._map_is_first = not reinitialised
         self._speeds.clear()
         self._speeds.append(outcome.speed)
         self._travel.clear()

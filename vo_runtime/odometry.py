@@ -24,7 +24,9 @@ States of a frame (``VOResult.status``), and what moves between them:
   ``lost_predict_frames`` back (-> ``tracking``), then try to relocalise against recent keyframes
   (`relocalise.py`) -> ``relocalised``, and after
   ``relocalise_frames`` failed tries also start a fresh two-view initialisation, scaled by the speed
-  measured before the loss -> ``reinitialised`` (a new map; the old one is dropped).
+  measured before the loss -> ``reinitialised`` (a new map; the old one is dropped). A first map lost within
+  ``VOConfig.young_map_frames`` of its first keyframe is instead discarded as a failed probation is: its frames
+  go back to ``initialising`` and the next map is a first map (`map_lifecycle.py`).
 - ``skipped``: the frame could not be used (None, empty, an unusable shape or dtype, NaN/inf:
   `check_frame`); the pose is held, ``problem`` says why, and the next frame is tracked as if it had not
   arrived. A frame whose size contradicts the calibration (or, for a calibration without a size, the first
@@ -117,6 +119,7 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
         probation)."""
         self._anchors: dict[int, list[tuple[int, np.ndarray]]] = {}  # keyframe -> (frame, frame-from-keyframe)
         self.map: LocalMap | None = None
+        self._map_is_first = False                   # the map is the run's first (not a re-initialisation)
         self._reference_kf = -1                      # keyframe the current frames are tracked from
         self._local_ids = np.zeros(0, np.int64)      # landmarks of the local map (cached per reference)
         self._previous: tuple[FrameData, np.ndarray] | None = None  # last tracked frame and its landmarks
@@ -280,6 +283,8 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
         result.num_matches = matches
         if mapped and cfg.relocalise_keyframes > 0 and self._lost_tries < cfg.relocalise_frames:
             return  # give relocalisation a few frames before a new map (and a guessed scale) replaces the old
+        if mapped and self._young_map_lost(index):
+            self._discard_young_map(index, result)  # the next map is a first map, not one at a guessed scale
         outcome = self._initialiser.try_initialise(index, self._poses_cw, self._speed)
         if outcome is None:
             return

@@ -1,0 +1,50 @@
+"""A first map lost soon after it was built is discarded, and the next map is a first map (`young_map_frames`)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from test_vo_odometry import SyntheticExtractor, ate, run, straight_then_turn
+from vo_runtime import VOConfig, VORuntimeError
+from vo_runtime.odometry import INITIALISING, LOST, REINITIALISED, RELOCALISED, TRACKING
+
+FRAMES = 80
+SCRAMBLED = frozenset(range(20, 30))  # nothing matches: the first map is lost and cannot relocalise
+
+
+def scrambled_run(young_map_frames: int):
+    poses = straight_then_turn(FRAMES)
+    extractor = SyntheticExtractor(poses, scramble=SCRAMBLED)
+    return poses, run(extractor, FRAMES, VOConfig(young_map_frames=young_map_frames))
+
+
+def test_a_young_first_map_that_is_lost_is_discarded_and_built_again_as_a_first_map():
+    poses, vo = scrambled_run(young_map_frames=40)
+    statuses = [r.status for r in vo.results]
+    discarded = [r.index for r in vo.results if r.problem and r.problem.startswith("map discarded: lost")]
+    assert len(discarded) == 1 and vo.results[discarded[0]].map_dropped
+    # no frame is reported lost: the map's frames and the loss went back to initialising, held at the origin
+    assert LOST not in statuses and REINITIALISED not in statuses
+    again = next(i for i, s in enumerate(statuses) if s == TRACKING)
+    assert again > discarded[0] > min(SCRAMBLED)
+    assert all(s == INITIALISING for s in statuses[:again])
+    assert all(not r.keyframe for r in vo.results[:again])
+    np.testing.assert_allclose([r.pose for r in vo.results[:again]], [np.eye(4)] * again, atol=1e-12)
+    assert all(s == TRACKING for s in statuses[again:])
+    rmse, _ = ate([vo.results[i].pose for i in range(again, FRAMES)], poses[again:])
+    assert rmse < 1e-6 * FRAMES
+
+
+def test_off_or_an_older_map_the_map_is_kept_through_the_loss():
+    for young_map_frames in (0, 15):  # off, and a map lost more than 15 frames after its first keyframe
+        _, vo = scrambled_run(young_map_frames)
+        statuses = [r.status for r in vo.results]
+        assert not any(r.map_dropped for r in vo.results)
+        first = next(i for i, s in enumerate(statuses) if s == TRACKING)
+        assert first < min(SCRAMBLED) and all(statuses[i] == LOST for i in SCRAMBLED)
+        assert statuses[max(SCRAMBLED) + 1] == RELOCALISED and statuses[-1] == TRACKING  # the old map found again
+
+
+def test_young_map_frames_is_checked():
+    with pytest.raises(VORuntimeError):
+        VOConfig(young_map_frames=-1)
