@@ -62,7 +62,9 @@ class VOConfig:
     # is discarded as one that failed its probation (the same budget of probation_max_discards), instead of a new
     # map being scaled by its speed: its frames go back to ``initialising`` and the next map is a first map, with
     # its own baseline's unit and the first map's gates. ORB-SLAM2 resets a map lost while it holds five keyframes
-    # or fewer; this VO keyframes every 1-4 frames, so its limit is in frames. 0: off.
+    # or fewer; this VO keyframes every 1-4 frames, so its limit is in frames. 0: off. Drone take-offs, 40 runs
+    # each: dark ATE 0.70x, frames lost 111 -> 0, onboard 0.64x, 98 -> 1; 20 frames too few (the maps break
+    # 22-30 frames in), 80 the same as 40 (docs/vo_euroc.md, "A young map lost in the turn is discarded").
     young_map_frames: int = 40
     min_triangulation_deg: float = 1.0   # rays closer than this give no landmark
     search_radius_px: float = 15.0       # guided matching around a landmark's predicted position
@@ -207,7 +209,7 @@ class VOResult:
     track_ms: float
     keyframe: bool = False  # became a keyframe (adds landmarks, runs the local bundle adjustment)
     problem: str | None = None  # why a skipped frame could not be used, or why a map was dropped here
-    map_dropped: bool = False   # the VO threw its map away at this frame (probation, travel check; see problem)
+    map_dropped: bool = False   # the VO threw its map away here (probation, young map lost, travel check; see problem)
     tracked_by: str | None = None  # local map | wide search | previous frame | relocalisation | two-view
     mapping_ms: float = 0.0  # keyframe work (triangulation, bundle adjustment, culling): part of track_ms,
     #                          or on the worker thread with VOConfig.mapping_thread
