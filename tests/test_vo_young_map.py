@@ -48,3 +48,18 @@ def test_off_or_an_older_map_the_map_is_kept_through_the_loss():
 def test_young_map_frames_is_checked():
     with pytest.raises(VORuntimeError):
         VOConfig(young_map_frames=-1)
+
+
+def test_with_young_map_travel_a_young_map_the_travel_check_breaks_is_discarded_too():
+    """A travel gate every map fails: the first two maps (the discard budget) are discarded while young, their
+    frames back to initialising; the third is abandoned as any map is (a new map at the speed before)."""
+    poses = straight_then_turn(FRAMES)
+    config = VOConfig(travel_check_gap=5, travel_check_max_deg=1e-9, travel_check_frames=3, young_map_frames=80,
+                      young_map_travel=True)
+    vo = run(SyntheticExtractor(poses, noise_px=0.3), FRAMES, config)
+    dropped = [r for r in vo.results if r.map_dropped]
+    assert [r.problem.split(":")[0] for r in dropped[:3]] == ["map discarded", "map discarded", "map abandoned"]
+    second = dropped[1].index
+    assert all(r.status == INITIALISING for r in vo.results[: second + 1])
+    assert dropped[2].status in (LOST, REINITIALISED)  # held, or a new map at once on the check's baseline
+    assert VOConfig().young_map_travel is False  # off by default

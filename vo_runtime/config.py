@@ -66,6 +66,10 @@ class VOConfig:
     # each: dark ATE 0.70x, frames lost 111 -> 0, onboard 0.64x, 98 -> 1; 20 frames too few (the maps break
     # 22-30 frames in), 80 the same as 40 (docs/vo_euroc.md, "A young map lost in the turn is discarded").
     young_map_frames: int = 40
+    # A first map the travel check finds broken within young_map_frames of its first keyframe is discarded the same
+    # way (its frames back to ``initialising``, the next map a first map) instead of being abandoned for a map at the
+    # speed from before. False: abandoned as any other map (docs/vo_euroc.md, "A young map lost in the turn").
+    young_map_travel: bool = False
     min_triangulation_deg: float = 1.0   # rays closer than this give no landmark
     search_radius_px: float = 15.0       # guided matching around a landmark's predicted position
     wide_search_radius_px: float = 45.0  # ... when the first search explains too little

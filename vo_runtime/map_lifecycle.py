@@ -42,7 +42,7 @@ class MapLifecycle:
         since = self._lost_since - self.map.keyframes[0].frame
         self._probation.discards += 1
         self._retract_map(index, result)
-        result.problem = f"map discarded: lost {since} frames after it was built"
+        result.problem = f"map discarded: lost {since} frames after its first keyframe (a young map)"
 
     def _retract_map(self, index: int, result: VOResult) -> None:
         """Forget the map as if it had never been built: its frames up to ``index`` go back to ``initialising``
@@ -74,18 +74,29 @@ class MapLifecycle:
     def _abandon_map(self, index: int, frame: FrameData, result: VOResult, degrees: float) -> None:
         """The travel check (`travel_check.py`) found the map's direction of travel broken: drop the map as a
         loss would, and initialise again from this frame at the median speed measured before the frames that
-        judged it (a broken map shrinks its scale while it breaks). This frame is lost, its pose held."""
+        judged it (a broken map shrinks its scale while it breaks). This frame is lost, its pose held. With
+        ``VOConfig.young_map_travel`` a young first map is discarded instead (`_retract_map`), and the map built
+        on the check's baseline is a first map."""
         check, frames = self._travel, self.config.speed_frames
         before = index - check.gap - check.frames
         speeds = [speed for number, speed in self._speed_log if number <= before][-frames:] or list(self._speeds)
         start = index - check.gap
         earlier = check.frame_at(start)  # before forgetting the map clears the check
-        self._forget_map()
-        self._speeds.extend(speeds)
-        self._probation.end()
-        result.status, result.tracked_by, result.map_dropped = LOST, None, True
-        result.problem = (f"map abandoned: its direction of travel disagreed with the frames' own geometry by "
-                          f"{degrees:.0f} deg (median of {check.frames} checks over {check.gap} frames)")
+        cfg = self.config
+        young = (cfg.young_map_travel and self._map_is_first
+                 and index - self.map.keyframes[0].frame <= cfg.young_map_frames
+                 and self._probation.discards < self._probation.max_discards)
+        if young:
+            self._probation.discards += 1
+            self._retract_map(index, result)
+        else:
+            self._forget_map()
+            self._speeds.extend(speeds)
+            self._probation.end()
+            result.status, result.tracked_by, result.map_dropped = LOST, None, True
+        result.problem = (f"map {'discarded' if young else 'abandoned'}: its direction of travel disagreed with the "
+                          f"frames' own geometry by {degrees:.0f} deg (median of {check.frames} checks over "
+                          f"{check.gap} frames)")
         # The check's first frame and this one are a baseline the essential matrix just found well
         # conditioned: initialise on it at once rather than wait for new parallax from here.
         if earlier is None:
