@@ -132,7 +132,8 @@ def test_an_abandoned_map_is_lost_then_built_again_at_the_speed_before():
     """A gate every map fails: the map is abandoned once its checks are in (status lost, the reason given), a new
     map follows at the old speed, and the run keeps one scale across the two maps."""
     poses = straight_then_turn(70)
-    config = VOConfig(travel_check_gap=5, travel_check_max_deg=1e-9, travel_check_frames=3)
+    # young_map_travel off: this is the abandonment path (a young first map is discarded instead: test_vo_young_map.py)
+    config = VOConfig(travel_check_gap=5, travel_check_max_deg=1e-9, travel_check_frames=3, young_map_travel=False)
     vo = run(SyntheticExtractor(poses, noise_px=0.3), 70, config)
     abandoned = [r.index for r in vo.results if r.problem and r.problem.startswith("map abandoned")]
     assert abandoned, "the check never fired"
@@ -151,7 +152,7 @@ def test_an_abandoned_map_is_built_again_at_once_on_the_checks_own_baseline():
     """With a window long enough for a two-view map (10 frames here), the map that replaces an abandoned one is
     built on the check's first frame and this one, without a lost frame, and keeps the run's scale."""
     poses = straight_then_turn(70)
-    config = VOConfig(travel_check_gap=10, travel_check_max_deg=1e-9, travel_check_frames=3)
+    config = VOConfig(travel_check_gap=10, travel_check_max_deg=1e-9, travel_check_frames=3, young_map_travel=False)
     vo = run(SyntheticExtractor(poses, noise_px=0.3), 70, config)
     at_once = [r for r in vo.results if r.problem and r.problem.endswith("initialised again on it")]
     assert len(at_once) >= 2 and all(r.status == REINITIALISED for r in at_once)
@@ -183,7 +184,8 @@ def test_the_cli_counts_and_names_dropped_maps(shared_data, tmp_path, capsys):
 
     run_dir = tmp_path / "run"
     code = main(["--features", "orb", "--images", str(shared_data / "tum_fr2_desk_snippet"), "--no-progress",
-                 "--json", "--set", "travel_check_max_deg=1e-9", "--set", "travel_check_frames=2", "-o", str(run_dir)])
+                 "--json", "--set", "travel_check_max_deg=1e-9", "--set", "travel_check_frames=2",
+                 "--set", "young_map_travel=false", "-o", str(run_dir)])  # the abandonment path
     captured = capsys.readouterr()
     assert code == 0
     summary = json.loads(captured.out)
@@ -214,7 +216,7 @@ def test_the_dark_take_off_that_broke_is_abandoned_and_recovers(shared_data):
     sequence = open_sequence(shared_data / "euroc_mh05_f000000-000199")
     height, width = frame_size(sequence.camera, sequence.frames)
     images = list(read_frames(sequence.frames))
-    for config in (VOConfig(landmark_variance=0.0), VOConfig()):
+    for config in (VOConfig(landmark_variance=0.0, young_map_travel=False), VOConfig(young_map_travel=False)):
         vo = VisualOdometry(default_artefact(width, height), sequence.camera, config)
         for i, image in enumerate(images):
             vo.track(lit_frame(image, "low", 0, i, 1), sequence.timestamps[i])
@@ -246,7 +248,7 @@ def test_on_the_car_the_check_speaks_on_matched_keypoints_and_finds_a_map_travel
     images = list(read_frames(sequence.frames[100:]))
 
     def track(match: bool) -> VisualOdometry:
-        config = VOConfig(travel_check_match_distance=0.9 if match else 0.0)
+        config = VOConfig(travel_check_match_distance=0.9 if match else 0.0, young_map_travel=False)
         vo = VisualOdometry(default_artefact(width, height), sequence.camera, config)
         for i, image in enumerate(images):
             vo.track(lit_frame(image, "onboard", 100, i, 1), sequence.timestamps[100 + i])

@@ -62,4 +62,4 @@ def test_with_young_map_travel_a_young_map_the_travel_check_breaks_is_discarded_
     second = dropped[1].index
     assert all(r.status == INITIALISING for r in vo.results[: second + 1])
     assert dropped[2].status in (LOST, REINITIALISED)  # held, or a new map at once on the check's baseline
-    assert VOConfig().young_map_travel is False  # off by default
+    assert VOConfig().young_map_travel is True  # on by default

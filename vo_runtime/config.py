@@ -64,12 +64,14 @@ class VOConfig:
     # its own baseline's unit and the first map's gates. ORB-SLAM2 resets a map lost while it holds five keyframes
     # or fewer; this VO keyframes every 1-4 frames, so its limit is in frames. 0: off. Drone take-offs, 40 runs
     # each: dark ATE 0.70x, frames lost 111 -> 0, onboard 0.64x, 98 -> 1; 20 frames too few (the maps break
-    # 22-30 frames in), 80 the same as 40 (docs/vo_euroc.md, "A young map lost in the turn is discarded").
-    young_map_frames: int = 40
+    # 22-30 frames in), 80 the same as 40 and, with young_map_travel, also reaches a map the travel check breaks
+    # 57 frames in (docs/vo_euroc.md, "A young map lost in the turn is discarded").
+    young_map_frames: int = 80
     # A first map the travel check finds broken within young_map_frames of its first keyframe is discarded the same
     # way (its frames back to ``initialising``, the next map a first map) instead of being abandoned for a map at the
-    # speed from before. False: abandoned as any other map (docs/vo_euroc.md, "A young map lost in the turn").
-    young_map_travel: bool = False
+    # speed from before: take-offs dark 0.76x, onboard 0.69x the ATE, the drone clip dark 0.92x, KITTI and TUM
+    # identical. False: abandoned as any other map (docs/vo_euroc.md, "A young map lost in the turn").
+    young_map_travel: bool = True
     min_triangulation_deg: float = 1.0   # rays closer than this give no landmark
     search_radius_px: float = 15.0       # guided matching around a landmark's predicted position
     wide_search_radius_px: float = 45.0  # ... when the first search explains too little
