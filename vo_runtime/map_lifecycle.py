@@ -26,23 +26,26 @@ class MapLifecycle:
         result.problem = (f"map discarded: its frame-to-frame rotations disagreed with the frames' own by {median:.2f} "
                           f"deg (median of {len(self._probation.values)} frames)")
 
-    def _young_map_lost(self, index: int) -> bool:
-        """The current map is a first map lost within ``VOConfig.young_map_frames`` frames of its first keyframe
-        that the motion model no longer searches for (``lost_predict_frames``), and the run may still discard a
-        map."""
-        cfg = self.config
-        return (cfg.young_map_frames > 0 and self.map is not None and self._map_is_first and self._lost_since >= 0
-                and self._lost_since - self.map.keyframes[0].frame <= cfg.young_map_frames
-                and index - self._last_tracked > cfg.lost_predict_frames
+    def _young(self, frame_number: int) -> bool:
+        """The current map is the run's first map, ``frame_number`` is at most ``VOConfig.young_map_frames`` after
+        its first keyframe, and the run may still discard a map."""
+        limit = self.config.young_map_frames
+        return (limit > 0 and self.map is not None and self._map_is_first
+                and frame_number - self.map.keyframes[0].frame <= limit
                 and self._probation.discards < self._probation.max_discards)
 
-    def _discard_young_map(self, index: int, result: VOResult) -> None:
-        """A young first map was lost (`_young_map_lost`): forget it as a failed probation would, so that the
-        next map is a first one. The initialiser keeps the tracks it has gathered since the loss."""
-        since = self._lost_since - self.map.keyframes[0].frame
+    def _young_map_lost(self, index: int) -> bool:
+        """A young first map (`_young`, judged at the frame of the loss) that the motion model no longer
+        searches for (``lost_predict_frames``)."""
+        return (self._lost_since >= 0 and index - self._last_tracked > self.config.lost_predict_frames
+                and self._young(self._lost_since))
+
+    def _discard_young_map(self, index: int, result: VOResult, problem: str) -> None:
+        """A young first map was lost or found broken: forget it as a failed probation would (from the same budget),
+        so that the next map is a first one. The initialiser keeps whatever tracks it holds."""
         self._probation.discards += 1
         self._retract_map(index, result)
-        result.problem = f"map discarded: lost {since} frames after its first keyframe (a young map)"
+        result.problem = f"map discarded: {problem}"
 
     def _retract_map(self, index: int, result: VOResult) -> None:
         """Forget the map as if it had never been built: its frames up to ``index`` go back to ``initialising``
@@ -82,21 +85,16 @@ class MapLifecycle:
         speeds = [speed for number, speed in self._speed_log if number <= before][-frames:] or list(self._speeds)
         start = index - check.gap
         earlier = check.frame_at(start)  # before forgetting the map clears the check
-        cfg = self.config
-        young = (cfg.young_map_travel and self._map_is_first
-                 and index - self.map.keyframes[0].frame <= cfg.young_map_frames
-                 and self._probation.discards < self._probation.max_discards)
-        if young:
-            self._probation.discards += 1
-            self._retract_map(index, result)
+        why = (f"its direction of travel disagreed with the frames' own geometry by {degrees:.0f} deg (median of "
+               f"{check.frames} checks over {check.gap} frames)")
+        if self.config.young_map_travel and self._young(index):
+            self._discard_young_map(index, result, why)
         else:
             self._forget_map()
             self._speeds.extend(speeds)
             self._probation.end()
             result.status, result.tracked_by, result.map_dropped = LOST, None, True
-        result.problem = (f"map {'discarded' if young else 'abandoned'}: its direction of travel disagreed with the "
-                          f"frames' own geometry by {degrees:.0f} deg (median of {check.frames} checks over "
-                          f"{check.gap} frames)")
+            result.problem = f"map abandoned: {why}"
         # The check's first frame and this one are a baseline the essential matrix just found well
         # conditioned: initialise on it at once rather than wait for new parallax from here.
         if earlier is None:

@@ -11,7 +11,8 @@ States of a frame (``VOResult.status``), and what moves between them:
   rotations it tracks disagree with the rotations the frames' own matches give, it is discarded, its frames
   go back to ``initialising`` (``problem`` says why on the frame that discarded it), and a new map is built.
   With ``VOConfig.travel_check_gap``, a map whose direction of travel the frames' own geometry contradicts
-  (`travel_check.py`) is abandoned: that frame is ``lost`` and a new map is built as after a loss.
+  (`travel_check.py`) is abandoned: that frame is ``lost`` and a new map is built as after a loss (a young first
+  map, with ``VOConfig.young_map_travel``, is discarded instead, as after a young map's loss below).
 - ``tracking``: the pose predicted by a constant-velocity model projects the local map (landmarks of the
   reference keyframe and its covisible keyframes) into the frame; guided matching and a robust refinement
   give the pose, with a wider search and then the previous frame as fallbacks (`tracking.py`;
@@ -283,8 +284,9 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
         result.num_matches = matches
         if mapped and cfg.relocalise_keyframes > 0 and self._lost_tries < cfg.relocalise_frames:
             return  # give relocalisation a few frames before a new map (and a guessed scale) replaces the old
-        if mapped and self._young_map_lost(index):
-            self._discard_young_map(index, result)  # the next map is a first map, not one at a guessed scale
+        if mapped and self._young_map_lost(index):  # the next map is a first map, not one at a guessed scale
+            self._discard_young_map(index, result, f"lost {self._lost_since - self.map.keyframes[0].frame} frames "
+                                                   f"after its first keyframe (a young map)")
         outcome = self._initialiser.try_initialise(index, self._poses_cw, self._speed)
         if outcome is None:
             return
