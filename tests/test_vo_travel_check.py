@@ -10,6 +10,7 @@ import pytest
 
 from test_vo_odometry import CAMERA, SyntheticExtractor, ate, run, straight_then_turn
 from vo_runtime import VOConfig, VORuntimeError
+from vo_runtime.mapping import MappingConfig
 from vo_runtime.odometry import LOST, REINITIALISED, TRACKING
 from vo_runtime.travel_check import TravelCheck, angle_deg, essential_direction
 
@@ -204,7 +205,8 @@ def test_the_dark_take_off_that_broke_is_abandoned_and_recovers(shared_data):
     every frame said tracking and the run ended 1.0 m off; with it the map is abandoned once its direction is
     judged wrong (frame 53), a new map follows, and the run ends 0.11 m off. Since young landmarks are weighted
     down (`VOConfig.landmark_variance`) this run's first map no longer breaks (0.04 m, nothing abandoned), so the
-    broken map is reproduced with them taken as exact, as when the case was found."""
+    broken map is reproduced with them taken as exact and without the baseline rule (`mapping.min_baseline_depth`,
+    under which that map keeps its direction too), as when the case was found."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/ is a folder of scripts
     from bench.eval_vo import lit_frame
     from vo_runtime import VisualOdometry
@@ -216,7 +218,8 @@ def test_the_dark_take_off_that_broke_is_abandoned_and_recovers(shared_data):
     sequence = open_sequence(shared_data / "euroc_mh05_f000000-000199")
     height, width = frame_size(sequence.camera, sequence.frames)
     images = list(read_frames(sequence.frames))
-    for config in (VOConfig(landmark_variance=0.0, young_map_travel=False), VOConfig(young_map_travel=False)):
+    as_found = VOConfig(landmark_variance=0.0, young_map_travel=False, mapping=MappingConfig(min_baseline_depth=0.0))
+    for config in (as_found, VOConfig(young_map_travel=False)):
         vo = VisualOdometry(default_artefact(width, height), sequence.camera, config)
         for i, image in enumerate(images):
             vo.track(lit_frame(image, "low", 0, i, 1), sequence.timestamps[i])

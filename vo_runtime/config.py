@@ -65,8 +65,9 @@ class VOConfig:
     # or fewer; this VO keyframes every 1-4 frames, so its limit is in frames. 0: off. Drone take-offs, 40 runs
     # each: dark ATE 0.70x, frames lost 111 -> 0, onboard 0.64x, 98 -> 1; 20 frames too few (the maps break
     # 22-30 frames in), 80 the same as 40 and, with young_map_travel, also reaches a map the travel check breaks
-    # 57 frames in (docs/vo_euroc.md, "A young map lost in the turn is discarded").
-    young_map_frames: int = 80
+    # 57 frames in (docs/vo_euroc.md, "A young map lost in the turn is discarded"); 120 since the baseline rule
+    # (`mapping.min_baseline_depth`), under which two onboard take-offs broke 83-86 frames in (1.86, 1.89 m).
+    young_map_frames: int = 120
     # A first map the travel check finds broken within young_map_frames of its first keyframe is discarded the same
     # way (its frames back to ``initialising``, the next map a first map) instead of being abandoned for a map at the
     # speed from before: take-offs dark 0.76x, onboard 0.69x the ATE, the drone clip dark 0.92x, KITTI and TUM
