@@ -161,8 +161,10 @@ def widest_partner(local_map: LocalMap, number: int, count: int, min_shared: int
 def short_baseline(local_map: LocalMap, other: int, number: int, share: float) -> bool:
     """Whether keyframes ``other`` and ``number`` are closer than ``share`` of ``other``'s median landmark depth
     (False with ``share`` 0 or for a keyframe without landmarks)."""
+    if share <= 0:
+        return False
     seen = local_map.landmarks_of([other])
-    if share <= 0 or len(seen) == 0:
+    if len(seen) == 0:
         return False
     pose = local_map.keyframes[other].pose_cw
     depth = float(np.median(local_map.positions[seen] @ pose[2, :3] + pose[2, 3]))
