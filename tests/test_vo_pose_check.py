@@ -11,8 +11,8 @@ import pytest
 
 from vo_runtime.config import VOConfig
 from vo_runtime.errors import VORuntimeError
-from vo_runtime.mapping import MappingConfig
 from vo_runtime.geometry import camera_centre
+from vo_runtime.mapping import MappingConfig
 from vo_runtime.pose import refine_pose, second_opinion
 
 FOCAL = 450.0
