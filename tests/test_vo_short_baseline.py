@@ -1,11 +1,15 @@
 """ORB-SLAM's baseline rule for new landmarks (`mapping.min_baseline_depth`): two keyframes closer than a share of
-the partner's median landmark depth triangulate nothing, on a synthetic scene with known depths (6-30 m)."""
+the partner's median landmark depth triangulate nothing, on a synthetic scene with known depths (6-30 m); `MonoVO`
+keeps the rule to a young first map."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+import vo_runtime.keyframing
 from tests.test_vo_localmap import FOCAL, frame_from, pose_at, scene
+from tests.test_vo_odometry import SyntheticExtractor, run, straight_then_turn
+from vo_runtime import VOConfig
 from vo_runtime.errors import VORuntimeError
 from vo_runtime.localmap import Keyframe, LocalMap
 from vo_runtime.mapping import MappingConfig, short_baseline, triangulate_new_landmarks
@@ -27,10 +31,10 @@ def two_keyframes(baseline: float) -> LocalMap:
     return local_map
 
 
-def new_landmarks(baseline: float, share: float) -> int:
+def new_landmarks(baseline: float, share: float, rule: bool = True) -> int:
     local_map = two_keyframes(baseline)
     config = MappingConfig(min_baseline_depth=share, min_parallax_px=0.5)
-    return triangulate_new_landmarks(local_map, 1, config, FOCAL, max_distance=0.9, ratio=0.9)
+    return triangulate_new_landmarks(local_map, 1, config, FOCAL, max_distance=0.9, ratio=0.9, baseline_rule=rule)
 
 
 def test_the_rule_compares_the_baseline_with_the_partners_median_depth():
@@ -47,6 +51,24 @@ def test_a_short_baseline_triangulates_nothing_and_a_long_one_or_the_rule_off_do
     assert new_landmarks(0.1, 0.01) == 0
     assert new_landmarks(0.1, 0.0) > 100
     assert new_landmarks(0.5, 0.01) > 100  # 2.8 %
+    assert new_landmarks(0.1, 0.01, rule=False) > 100  # a keyframe the rule is not applied to
+
+
+def test_the_vo_applies_the_rule_while_its_first_map_is_young(monkeypatch):
+    # A map lost while young is discarded and built again, so running out of landmarks costs little then; later a
+    # loss costs the track (a drone slowing near structure the far map's depth rules out: docs/vo_euroc.md).
+    seen = []
+
+    def recording(local_map, number, *args, **kwargs):
+        seen.append((local_map.keyframes[number].frame - local_map.keyframes[0].frame, kwargs["baseline_rule"]))
+        return triangulate_new_landmarks(local_map, number, *args, **kwargs)
+
+    monkeypatch.setattr(vo_runtime.keyframing, "triangulate_new_landmarks", recording)
+    poses = straight_then_turn(60)
+    run(SyntheticExtractor(poses), 60, VOConfig(young_map_frames=20, keyframe_max_gap=3))
+    assert len(seen) > 10
+    assert all(rule == (age <= 20) for age, rule in seen)
+    assert {rule for _, rule in seen} == {True, False}
 
 
 def test_the_share_is_checked():

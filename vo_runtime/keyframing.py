@@ -62,7 +62,8 @@ class KeyframeUpkeep:
         refresh_landmarks(self.map, number, mapping, focal)
         triangulate_new_landmarks(self.map, number, mapping, focal, cfg.match_max_distance, cfg.match_ratio,
                                   self._align if self._aligner is not None else None, self._detection_scale,
-                                  wide_partner=result.tracked_by == LOCAL_MAP)
+                                  wide_partner=result.tracked_by == LOCAL_MAP,
+                                  baseline_rule=self._young(keyframe.frame))
         observe_in_neighbours(self.map, number, mapping, focal, cfg.match_max_distance, cfg.match_ratio,
                               self._align if self._aligner is not None else None)
         for moved in local_bundle_adjustment(self.map, number, mapping, focal):

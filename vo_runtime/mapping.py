@@ -41,6 +41,9 @@ class MappingConfig:
     # drone's dark take-offs (starts 0-15 x 10 draws) 0.78x [0.59, 0.98] the ATE against off (a 1.09 m run whose
     # map shrank in the turn now loses that young map and is rebuilt after it: 0.011 m); the onboard take-offs,
     # the clip's 18 starts x 3 draws, KITTI 06 / 07 and TUM level (with young_map_frames 120; docs/vo_euroc.md).
+    # `MonoVO` applies it to a young first map only (within `VOConfig.young_map_frames`; 0 there: never), where a
+    # map that runs out of landmarks is discarded and built again: on an older map it starved a drone slowing
+    # towards near structure (the clip played back to its start: its last 7-10 frames lost in the dark).
     min_baseline_depth: float = 0.01
     # Besides those, the keyframe furthest from the new one among its this many best covisible ones that share
     # at least `wide_partner_min_shared` landmarks, for a keyframe the local map tracked (0: none). In a turn every
@@ -174,8 +177,12 @@ def short_baseline(local_map: LocalMap, other: int, number: int, share: float) -
 
 def triangulate_new_landmarks(local_map: LocalMap, number: int, config: MappingConfig, focal: float,
                               max_distance: float, ratio: float | None, align: Callable | None = None,
-                              detection_scale: float = 1.0, wide_partner: bool = True) -> int:
+                              detection_scale: float = 1.0, wide_partner: bool = True,
+                              baseline_rule: bool = True) -> int:
     """Create landmarks between keyframe ``number`` and its covisible keyframes; returns how many.
+
+    ``baseline_rule``: whether ``config.min_baseline_depth`` applies to this keyframe (`MonoVO` keeps it to a
+    young first map; see `VOConfig.young_map_frames`).
 
     ``align(source, target, source_rows, target_rows)``, when given, moves the new keyframe's matched
     keypoints onto the other keyframe's patches (`refine.py`) before they are triangulated. The epipolar
@@ -194,7 +201,7 @@ def triangulate_new_landmarks(local_map: LocalMap, number: int, config: MappingC
     created = 0
     for other_number in neighbours:
         other = local_map.keyframes[other_number]
-        if short_baseline(local_map, other_number, number, config.min_baseline_depth):
+        if baseline_rule and short_baseline(local_map, other_number, number, config.min_baseline_depth):
             continue
         # Bounded work: the strongest keypoints without a landmark (features come sorted by score).
         rows_a = np.flatnonzero(other.landmark < 0)[: config.triangulation_candidates]
