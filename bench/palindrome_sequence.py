@@ -13,11 +13,18 @@ are symbolic links to the source's images (nothing is copied); the output folder
 from __future__ import annotations
 
 import argparse
-import bisect
 import shutil
 import sys
 import tempfile
 from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from vo_runtime.euroc import MAX_ASSOCIATION_S  # noqa: E402
+from vo_runtime.timestamps import nearest_samples  # noqa: E402
 
 FRAME_NS = 50_000_000  # 20 Hz, the EuRoC camera's rate
 
@@ -31,8 +38,11 @@ def write_palindrome(source: Path, target: Path) -> int:
     """Write ``target``/mav0 from ``source``/mav0 (cam0 and the ground truth); returns the frame count."""
     cam_header, frames = _rows(source / "mav0/cam0/data.csv")
     truth_header, truth = _rows(source / "mav0/state_groundtruth_estimate0/data.csv")
-    stamps = [int(row[0]) for row in truth]
     order = list(range(len(frames))) + list(range(len(frames) - 2, -1, -1))
+    # Each source frame's ground-truth row as the VO's reader associates it (nearest, within 5 ms; none beyond).
+    nearest, gaps = nearest_samples(np.array([int(row[0]) for row in truth], np.float64),
+                                    [int(row[0]) for row in frames])
+    truth_of = [truth[j][1:] if gap <= MAX_ASSOCIATION_S * 1e9 else None for j, gap in zip(nearest, gaps)]
     (target / "mav0/cam0/data").mkdir(parents=True, exist_ok=True)
     (target / "mav0/state_groundtruth_estimate0").mkdir(parents=True)
     shutil.copy(source / "mav0/cam0/sensor.yaml", target / "mav0/cam0/sensor.yaml")
@@ -42,10 +52,8 @@ def write_palindrome(source: Path, target: Path) -> int:
         stamp = first + k * FRAME_NS
         (target / f"mav0/cam0/data/{stamp}.png").symlink_to((source / "mav0/cam0/data" / frames[i][1]).resolve())
         cam_lines.append(f"{stamp},{stamp}.png")
-        original = int(frames[i][0])
-        j = bisect.bisect_left(stamps, original)
-        j = min((q for q in (j - 1, j) if 0 <= q < len(stamps)), key=lambda q: abs(stamps[q] - original))
-        truth_lines.append(",".join([str(stamp)] + truth[j][1:]))
+        if truth_of[i] is not None:
+            truth_lines.append(",".join([str(stamp)] + truth_of[i]))
     (target / "mav0/cam0/data.csv").write_text("\n".join(cam_lines) + "\n")
     (target / "mav0/state_groundtruth_estimate0/data.csv").write_text("\n".join(truth_lines) + "\n")
     return len(order)
