@@ -41,9 +41,10 @@ class MappingConfig:
     # drone's dark take-offs (starts 0-15 x 10 draws) 0.78x [0.59, 0.98] the ATE against off (a 1.09 m run whose
     # map shrank in the turn now loses that young map and is rebuilt after it: 0.011 m); the onboard take-offs,
     # the clip's 18 starts x 3 draws, KITTI 06 / 07 and TUM level (with young_map_frames 120; docs/vo_euroc.md).
-    # `MonoVO` applies it to a young first map only (within `VOConfig.young_map_frames`; 0 there: never), where a
-    # map that runs out of landmarks is discarded and built again: on an older map it starved a drone slowing
-    # towards near structure (the clip played back to its start: its last 7-10 frames lost in the dark).
+    # `MonoVO` applies it only while a loss would discard the map and build it again (`MonoVO._young`: the first
+    # map, within `VOConfig.young_map_frames` of its first keyframe, a discard left; young_map_frames 0: never): on
+    # an older map it starved a drone slowing towards near structure (the clip played back to its start: its last
+    # 7-10 frames lost in the dark).
     min_baseline_depth: float = 0.01
     # Besides those, the keyframe furthest from the new one among its this many best covisible ones that share
     # at least `wide_partner_min_shared` landmarks, for a keyframe the local map tracked (0: none). In a turn every
