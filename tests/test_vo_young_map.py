@@ -12,10 +12,11 @@ FRAMES = 80
 SCRAMBLED = frozenset(range(20, 30))  # nothing matches: the first map is lost and cannot relocalise
 
 
-def scrambled_run(young_map_frames: int):
+def scrambled_run(young_map_frames: int, young_map_lost_frames: int = 40):
     poses = straight_then_turn(FRAMES)
     extractor = SyntheticExtractor(poses, scramble=SCRAMBLED)
-    return poses, run(extractor, FRAMES, VOConfig(young_map_frames=young_map_frames))
+    return poses, run(extractor, FRAMES, VOConfig(young_map_frames=young_map_frames,
+                                                  young_map_lost_frames=young_map_lost_frames))
 
 
 def test_a_young_first_map_that_is_lost_is_discarded_and_built_again_as_a_first_map():
@@ -36,8 +37,10 @@ def test_a_young_first_map_that_is_lost_is_discarded_and_built_again_as_a_first_
 
 
 def test_off_or_an_older_map_the_map_is_kept_through_the_loss():
-    for young_map_frames in (0, 15):  # off, and a map lost more than 15 frames after its first keyframe
-        _, vo = scrambled_run(young_map_frames)
+    # off; a map lost more than 15 frames after its first keyframe; the same map under a young_map_frames that
+    # would discard it, when a loss is judged over young_map_lost_frames (15, or 0: never) instead
+    for young_map_frames, lost_frames in ((0, 40), (15, 40), (40, 15), (40, 0)):
+        _, vo = scrambled_run(young_map_frames, lost_frames)
         statuses = [r.status for r in vo.results]
         assert not any(r.map_dropped for r in vo.results)
         first = next(i for i, s in enumerate(statuses) if s == TRACKING)
@@ -48,6 +51,19 @@ def test_off_or_an_older_map_the_map_is_kept_through_the_loss():
 def test_young_map_frames_is_checked():
     with pytest.raises(VORuntimeError):
         VOConfig(young_map_frames=-1)
+    with pytest.raises(VORuntimeError):
+        VOConfig(young_map_lost_frames=-1)
+
+
+def test_young_map_lost_frames_judges_only_the_loss():
+    """Losses judged over a shorter span (here: never) leave the travel check's verdict on a young map as it was:
+    the map is discarded while within young_map_frames."""
+    poses = straight_then_turn(FRAMES)
+    config = VOConfig(travel_check_gap=5, travel_check_max_deg=1e-9, travel_check_frames=3, young_map_frames=80,
+                      young_map_lost_frames=0, young_map_travel=True)
+    vo = run(SyntheticExtractor(poses, noise_px=0.3), FRAMES, config)
+    assert [r.problem.split(":")[0] for r in vo.results if r.map_dropped][:2] == ["map discarded", "map discarded"]
+    assert VOConfig().young_map_lost_frames == 40 < VOConfig().young_map_frames
 
 
 def test_with_young_map_travel_a_young_map_the_travel_check_breaks_is_discarded_too():

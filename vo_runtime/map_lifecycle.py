@@ -26,10 +26,10 @@ class MapLifecycle:
         result.problem = (f"map discarded: its frame-to-frame rotations disagreed with the frames' own by {median:.2f} "
                           f"deg (median of {len(self._probation.values)} frames)")
 
-    def _young(self, frame_number: int) -> bool:
-        """The current map is the run's first map, ``frame_number`` is at most ``VOConfig.young_map_frames`` after
-        its first keyframe, and the run may still discard a map."""
-        limit = self.config.young_map_frames
+    def _young(self, frame_number: int, limit: int | None = None) -> bool:
+        """The current map is the run's first map, ``frame_number`` is at most ``limit`` frames
+        (``VOConfig.young_map_frames``) after its first keyframe, and the run may still discard a map."""
+        limit = self.config.young_map_frames if limit is None else limit
         return (limit > 0 and self.map is not None and self._map_is_first
                 and frame_number - self.map.keyframes[0].frame <= limit
                 and self._probation.discards < self._probation.max_discards)
@@ -38,7 +38,11 @@ class MapLifecycle:
         """A young first map (`_young`, judged at the frame of the loss) that the motion model no longer
         searches for (``lost_predict_frames``)."""
         return (self._lost_since >= 0 and index - self._last_tracked > self.config.lost_predict_frames
-                and self._young(self._lost_since))
+                and self._young(self._lost_since, self._lost_limit()))
+
+    def _lost_limit(self) -> int:
+        """A loss is judged young over the shorter of ``young_map_lost_frames`` and ``young_map_frames``."""
+        return min(self.config.young_map_lost_frames, self.config.young_map_frames)
 
     def _discard_young_map(self, index: int, result: VOResult, problem: str) -> None:
         """A young first map was lost or found broken: forget it as a failed probation would (from the same budget),
