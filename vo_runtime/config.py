@@ -64,10 +64,10 @@ class VOConfig:
     # ``initialising`` and the next map is a first map, with its own baseline's unit and the first map's gates.
     # ORB-SLAM2 resets a map lost while it holds five keyframes or fewer; this VO keyframes every 1-4 frames, so
     # its limit is in frames. 0: off. Drone take-offs, 40 runs each: dark ATE 0.70x, frames lost 111 -> 0,
-    # onboard 0.64x, 98 -> 1; 20 frames too few (the maps break
-    # 22-30 frames in), 80 the same as 40 and, with young_map_travel, also reaches a map the travel check breaks
-    # 57 frames in (docs/vo_euroc.md, "A young map lost in the turn is discarded"); 120 since the baseline rule
-    # (`mapping.min_baseline_depth`), under which two onboard take-offs broke 83-86 frames in (1.86, 1.89 m).
+    # onboard 0.64x, 98 -> 1; 20 frames too few (the maps break 22-30 frames in), 80 the same as 40 and, with
+    # young_map_travel, also reaches a map the travel check breaks 57 frames in (docs/vo_euroc.md, "A young map
+    # lost in the turn is discarded"); 120 since the baseline rule (`mapping.min_baseline_depth`), under which two
+    # onboard take-offs broke 83-86 frames in (1.86, 1.89 m).
     young_map_frames: int = 120
     # A loss alone is judged over a shorter span: a first map lost at most this many frames after its first keyframe
     # (and within young_map_frames) is discarded; one lost later is carried through the loss as any map is. A map

@@ -1,5 +1,5 @@
 """`MapLifecycle`: how `MonoVO` starts a map (a two-view initialisation that succeeded) and throws one away (a
-first map that failed its probation, `probation.py`, or was lost while young, ``VOConfig.young_map_frames``; a map
+first map that failed its probation, `probation.py`, or was lost while young, ``VOConfig.young_map_lost_frames``; a map
 the travel check found broken, `travel_check.py`).
 
 A base class of `MonoVO` only, over its state (``self.map``, ``self._poses_cw``, ``self._probation``, ...), as
@@ -35,14 +35,12 @@ class MapLifecycle:
                 and self._probation.discards < self._probation.max_discards)
 
     def _young_map_lost(self, index: int) -> bool:
-        """A young first map (`_young`, judged at the frame of the loss) that the motion model no longer
-        searches for (``lost_predict_frames``)."""
+        """A young first map (`_young`, judged at the frame of the loss over the shorter of
+        ``young_map_lost_frames`` and ``young_map_frames``) that the motion model no longer searches for
+        (``lost_predict_frames``)."""
+        limit = min(self.config.young_map_lost_frames, self.config.young_map_frames)
         return (self._lost_since >= 0 and index - self._last_tracked > self.config.lost_predict_frames
-                and self._young(self._lost_since, self._lost_limit()))
-
-    def _lost_limit(self) -> int:
-        """A loss is judged young over the shorter of ``young_map_lost_frames`` and ``young_map_frames``."""
-        return min(self.config.young_map_lost_frames, self.config.young_map_frames)
+                and self._young(self._lost_since, limit))
 
     def _discard_young_map(self, index: int, result: VOResult, problem: str) -> None:
         """A young first map was lost or found broken: forget it as a failed probation would (from the same budget),

@@ -26,7 +26,7 @@ States of a frame (``VOResult.status``), and what moves between them:
   (`relocalise.py`) -> ``relocalised``, and after
   ``relocalise_frames`` failed tries also start a fresh two-view initialisation, scaled by the speed
   measured before the loss -> ``reinitialised`` (a new map; the old one is dropped). A first map lost within
-  ``VOConfig.young_map_frames`` of its first keyframe is instead discarded as a failed probation is: its frames
+  ``VOConfig.young_map_lost_frames`` of its first keyframe is instead discarded as a failed probation is: its frames
   go back to ``initialising`` and the next map is a first map (`map_lifecycle.py`).
 - ``skipped``: the frame could not be used (None, empty, an unusable shape or dtype, NaN/inf:
   `check_frame`); the pose is held, ``problem`` says why, and the next frame is tracked as if it had not
