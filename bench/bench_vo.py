@@ -27,6 +27,7 @@ import os
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -46,13 +47,9 @@ AHEAD = 2  # frames extracted ahead by `MonoVO.stream` (the default of `python -
 
 
 def run(name: str, extractor, frames: list[np.ndarray], camera, stamps: list[float], threaded: bool = False,
-        ahead: int = 0, travel_check: str = "default") -> dict:
-    """One timed run; ``travel_check``: "default" (VOConfig's), "matched" (descriptor matches where the frames
-    share too few landmarks, `VOConfig.travel_check_match_distance` 0.9) or "off"."""
-    default = VOConfig()
-    gap = 0 if travel_check == "off" else default.travel_check_gap
-    distance = 0.9 if travel_check == "matched" else default.travel_check_match_distance
-    config = VOConfig(mapping_thread=threaded, travel_check_gap=gap, travel_check_match_distance=distance)
+        ahead: int = 0, changes: dict | None = None) -> dict:
+    """One timed run of today's VOConfig with ``changes`` (field -> value) on top."""
+    config = replace(VOConfig(), mapping_thread=threaded, **(changes or {}))
     vo = VisualOdometry(extractor, camera, config)
     start = time.perf_counter()
     if ahead:
@@ -97,12 +94,14 @@ def main() -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         default = FeatureExtractor(default_artefact(*size), threads=1)  # the shipped one for this aspect
-        on = "default"
+        on = None
         runs = [("orb-1000", OrbExtractor(1000), False, 0, on), ("orb-2000", OrbExtractor(2000), False, 0, on),
                 ("harris-fixture", FeatureExtractor(write_artefact(Path(tmp) / "harris"), threads=1), False, 0, on),
                 (f"default {default.height}x{default.width}", default, False, 0, on),
-                ("default + matched ck", default, False, 0, "matched"),  # what the check's matching costs
-                ("default, no travel ck", default, False, 0, "off"),  # what the travel check costs
+                # what the travel check's descriptor matching costs; the travel check; following missed landmarks
+                ("default + matched ck", default, False, 0, {"travel_check_match_distance": 0.9}),
+                ("default, no travel ck", default, False, 0, {"travel_check_gap": 0}),
+                ("default, no flow", default, False, 0, {"flow_window_px": 0}),
                 ("default + thread", default, True, 0, on),  # mapping on a second thread
                 ("default + ahead", default, False, AHEAD, on)]  # the network 2 frames ahead on a second thread
         # Rows named by folder, or by the path given when two folders share a name (an artefact against its re-export).
@@ -111,9 +110,9 @@ def main() -> int:
         runs += [(name, FeatureExtractor(a, threads=1), False, 0, on) for name, a in zip(names, args.artefact)]
         runs += [(name + " + ahead", FeatureExtractor(a, threads=1), False, AHEAD, on)
                  for name, a in zip(names, args.artefact)]
-        rows = [max((run(name, ex, frames, camera, sequence.timestamps, threaded, ahead, check)
+        rows = [max((run(name, ex, frames, camera, sequence.timestamps, threaded, ahead, changes)
                      for _ in range(args.repeat)), key=lambda row: row["fps"])
-                for name, ex, threaded, ahead, check in runs]
+                for name, ex, threaded, ahead, changes in runs]
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"{len(frames)} frames of {Path(args.sequence).name} at {size[0]}x{size[1]}, 1 thread, best of "
           f"{args.repeat}; load average {load:.1f} on {os.cpu_count()} CPUs; ms per frame")

@@ -173,6 +173,12 @@ class VOConfig:
     # 1.03x (docs/vo_euroc.md, "Young landmarks weighted down"). Weighted fits only (a network's detections at the
     # camera's resolution: ORB, KITTI and TUM runs are unchanged); 0: every landmark taken as exact.
     landmark_variance: float = 2.0
+    # Landmarks the previous frame matched and this one missed, followed by optical flow (`flow_follow.py`):
+    # Lucas-Kanade patch side in frame pixels (0: off), the forward-backward check in frame pixels, and the
+    # followed point's relative position error in a weighted pose fit.
+    flow_window_px: int = 15
+    flow_check_px: float = 0.5
+    flow_sigma: float = 1.0
     # When the search from the constant-velocity prediction fails, the rotation since the last tracked frame
     # measured on the two frames' matches turns the prediction for a second search, and a pose the wide search or
     # the previous frame finds must agree with it within this many degrees (`tracking.track_frame`; 0: off). Off:
@@ -194,6 +200,8 @@ class VOConfig:
             raise VORuntimeError("align_window_px must be >= 0, align_max_shift > 0 and align_gain >= 1")
         if self.landmark_variance < 0 or self.image_rotation_deg < 0:
             raise VORuntimeError("landmark_variance and image_rotation_deg must be >= 0")
+        if self.flow_window_px < 0 or self.flow_check_px <= 0 or self.flow_sigma <= 0:
+            raise VORuntimeError("flow_window_px must be >= 0, flow_check_px and flow_sigma > 0")
         if self.probation_frames < 0 or self.probation_max_deg <= 0 or self.probation_max_discards < 0 \
                 or self.young_map_frames < 0 or self.young_map_lost_frames < 0:
             raise VORuntimeError("probation_frames, probation_max_discards, young_map_frames and "

@@ -23,14 +23,16 @@ ALIGN_KEYFRAMES = 12  # keyframes that keep their image for patch alignment (the
 
 
 class KeyframeUpkeep:
-    def _needs_keyframe(self, index: int, tracked: int) -> bool:
-        """ORB-SLAM's two reasons, simplified: the view has moved on, or too long since the last keyframe."""
+    def _needs_keyframe(self, index: int, tracked: int, detected: int | None = None) -> bool:
+        """ORB-SLAM's two reasons, simplified: the view has moved on, or too long since the last keyframe.
+        ``tracked``: landmarks the frame tracked; ``detected``: those of them at the detector's keypoints
+        (None: all), which alone can found new landmarks."""
         cfg = self.config
         reference = self.map.keyframes[self._reference_kf]
         since = index - self.map.keyframes[-1].frame
         if since >= cfg.keyframe_max_gap:
             return True
-        if since >= cfg.keyframe_min_gap and tracked < cfg.keyframe_min_tracked:
+        if since >= cfg.keyframe_min_gap and (tracked if detected is None else detected) < cfg.keyframe_min_tracked:
             return True  # tracking is thinning out: new landmarks now, before it is lost
         # The reference keyframe's established landmarks (seen by 3+ keyframes; by 2 while the map is young):
         # a frame that tracks too small a share of them sees a view the map does not cover well.

@@ -52,6 +52,7 @@ from vo_runtime.camera import Camera
 from vo_runtime.config import Extraction, VOConfig, VOResult
 from vo_runtime.errors import CalibrationError, VORuntimeError
 from vo_runtime.features import FeatureExtractor, Features, detector_pixel, keypoint_sigma, to_gray_u8
+from vo_runtime.flow_follow import FlowFollow, follow_missed_landmarks
 from vo_runtime.frame_intake import FrameIntake
 from vo_runtime.geometry import camera_centre, invert_pose
 from vo_runtime.initialiser import Initialiser
@@ -253,8 +254,10 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
         frame = FrameData.build(self.camera.normalise(pixels), pixels, features.descriptors)
         if features.scores_predict_error and self._aligner is None:  # aligned keypoints are no longer detections
             frame.sigma = keypoint_sigma(features.scores, cfg.score_sigma_power, cfg.score_sigma_limit)
+        if cfg.flow_window_px > 0:
+            frame.image = to_gray_u8(image)
         if self._aligner is not None:
-            frame.gray = to_gray_u8(image)
+            frame.gray = frame.image if frame.image is not None else to_gray_u8(image)
             if cfg.align_normalise:
                 frame.gray = contrast_normalise(frame.gray, self._aligner.window_px)
         if self._probation.active or self.map is None:  # the map-free rotation: on detections, not aligned points
@@ -292,6 +295,22 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
             return
         self._start_map(index, outcome, result)
 
+    def _follow(self, index: int, frame: FrameData, outcome, status: str) -> int:
+        """The landmarks the previous frame matched and this one missed, followed by optical flow
+        (``VOConfig.flow_window_px``, `flow_follow.py`); only from a frame tracked just before."""
+        cfg = self.config
+        previous = self._previous[0] if self._previous is not None else None
+        if cfg.flow_window_px <= 0 or status != TRACKING or self._last_tracked != index - 1 \
+                or previous is None or previous.image is None or frame.image is None:
+            return 0
+        # A young first map earns its keep on its own detections: a broken one is discarded when it loses its way
+        # (`_young_map_lost`), and points followed where it says to look would carry it along instead.
+        if self._young(index, min(cfg.young_map_lost_frames, cfg.young_map_frames)):
+            return 0
+        settings = FlowFollow(cfg.flow_window_px, cfg.flow_check_px, cfg.pnp_threshold_px, cfg.flow_sigma)
+        return follow_missed_landmarks(self.map, previous, self._previous[1], previous.image, frame, frame.image,
+                                       outcome, self.camera.normalise, self._focal, settings)
+
     def _predict(self, index: int) -> np.ndarray:
         """Constant velocity: the last motion repeated once per frame since the last tracked frame."""
         pose = self._poses_cw[self._last_tracked]
@@ -326,16 +345,20 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
 
     def _accept(self, index: int, frame: FrameData, outcome, status: str, result: VOResult) -> None:
         """A tracked frame: store its pose, the motion model, and make it a keyframe if needed."""
-        if self._aligner is not None and align_to_map(self._aligner, self.map, frame, outcome.landmark,
-                                                      self.camera.normalise):
+        detections = len(frame.points)  # rows past these are landmarks the flow followed
+        followed = self._follow(index, frame, outcome, status)
+        aligned = self._aligner is not None and align_to_map(self._aligner, self.map, frame, outcome.landmark,
+                                                             self.camera.normalise)
+        if followed or aligned:
             refit_pose(self.map, frame, outcome, self._settings(frame))
         pose = outcome.pose_cw
         previous = self._previous[0]
         if self._probation.active and status == TRACKING and self._last_tracked == index - 1 \
                 and previous.detected is not None:
-            value = self._probation.disagreement(previous.detected, previous.descriptors, frame.detected,
-                                                 frame.descriptors, pose[:3, :3] @ self._poses_cw[index - 1][:3, :3].T,
-                                                 self._focal)
+            # detections only: a landmark the flow followed (rows past them) was found where the map said to look
+            value = self._probation.disagreement(previous.detected, previous.descriptors[:len(previous.detected)],
+                                                 frame.detected, frame.descriptors[:len(frame.detected)],
+                                                 pose[:3, :3] @ self._poses_cw[index - 1][:3, :3].T, self._focal)
             if self._probation.judge(value):
                 self._discard_map(index, frame, result)
                 return
@@ -358,7 +381,8 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
         result.num_matches, result.num_inliers = outcome.matches, outcome.inliers
         result.num_landmarks = int(np.count_nonzero(outcome.landmark >= 0))
         self.last_observations = (frame.pixels, outcome.landmark)
-        if self._needs_keyframe(index, result.num_landmarks) or status == RELOCALISED:
+        detected = int(np.count_nonzero(outcome.landmark[:detections] >= 0))
+        if self._needs_keyframe(index, result.num_landmarks, detected) or status == RELOCALISED:
             self._insert_keyframe(index, frame, outcome.landmark, result)
             result.keyframe = True
         else:

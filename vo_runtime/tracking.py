@@ -38,6 +38,7 @@ class FrameData:
     gray: np.ndarray | None = None  # the frame, uint8, for patch alignment (`refine.py`)
     detected: np.ndarray | None = None  # ``points`` as detected, before alignment moves some (`probation.py`)
     sigma: np.ndarray | None = None  # [N] each keypoint's expected position error, relative (None: all alike)
+    image: np.ndarray | None = None  # the frame, uint8 gray, for following missed landmarks (`flow_follow.py`)
 
     @classmethod
     def build(cls, points: np.ndarray, pixels: np.ndarray, descriptors: np.ndarray) -> "FrameData":
