@@ -160,3 +160,28 @@ def test_a_keyframe_is_due_when_the_detector_finds_too_little_of_the_map_whateve
     assert not due(200) and not due(200, 100)
     assert due(200, 50) and due(50)
     assert KeyframeUpkeep._needs_keyframe(upkeep, 5, 200, 100)  # keyframe_max_gap still counts
+
+
+def test_the_travel_check_still_finds_a_broken_first_map_the_flow_follows(shared_data):
+    """The onboard take-off from frame 0, noise draw 5: its first map goes wrong in the turn and the travel check
+    discards it (frame 71). When the check also judged the flow's points, which sit where the broken map said to
+    look, it sided with the map: nothing was discarded and the run ended 1.7 m off."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # bench/ is a folder of scripts
+    from bench.eval_vo import lit_frame
+    from vo_runtime import VisualOdometry
+    from vo_runtime.artefact import default_artefact
+    from vo_runtime.datasets import frame_size, open_sequence
+    from vo_runtime.evaluate import evaluate, sequence_groundtruth
+    from vo_runtime.sequence import read_frames
+
+    sequence = open_sequence(shared_data / "euroc_mh05_f000000-000199")
+    height, width = frame_size(sequence.camera, sequence.frames)
+    vo = VisualOdometry(default_artefact(width, height), sequence.camera, VOConfig())
+    for i, image in enumerate(read_frames(sequence.frames)):
+        vo.track(lit_frame(image, "onboard", 0, i, 5), sequence.timestamps[i])
+    vo.finish()
+    dropped = [r.index for r in vo.results if r.map_dropped]
+    assert len(dropped) == 1 and 40 < dropped[0] < 120
+    assert vo.results[dropped[0]].problem.startswith("map discarded: its direction of travel")
+    report = evaluate(vo.results, sequence_groundtruth(sequence), sequence.layout, sequence.timestamps)
+    assert report["ate_rmse_m"] < 0.1

@@ -64,13 +64,16 @@ class MapLifecycle:
         result.status, result.tracked_by, result.map_dropped = INITIALISING, None, True
 
     def _travel_broken(self, index: int, frame: FrameData, landmark: np.ndarray, pose_cw: np.ndarray,
-                       result: VOResult) -> bool:
-        """The travel check's verdict on a tracked frame; a map judged broken is abandoned (True)."""
+                       result: VOResult, detections: int | None = None) -> bool:
+        """The travel check's verdict on a tracked frame; a map judged broken is abandoned (True). It judges the
+        first ``detections`` rows only (None: all): a landmark the flow followed (`flow_follow.py`) was found
+        where the map said to look, so it would side with the map against the frames' own geometry."""
         if not self._travel.active:
             return False
-        degrees = self._travel.judge(index, landmark, frame.points, pose_cw,
+        rows = slice(None, detections)
+        degrees = self._travel.judge(index, landmark[rows], frame.points[rows], pose_cw,
                                      self.config.ransac_threshold_px / self._focal, keep=frame,
-                                     pose_of=self._poses_cw.__getitem__, descriptors=frame.descriptors)
+                                     pose_of=self._poses_cw.__getitem__, descriptors=frame.descriptors[rows])
         if degrees is None:
             return False
         self._abandon_map(index, frame, result, degrees)

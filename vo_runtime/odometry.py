@@ -362,7 +362,7 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
             if self._probation.judge(value):
                 self._discard_map(index, frame, result)
                 return
-        if status == TRACKING and self._travel_broken(index, frame, outcome.landmark, pose, result):
+        if status == TRACKING and self._travel_broken(index, frame, outcome.landmark, pose, result, detections):
             return
         if self._last_tracked >= 0 and (self._lost_since < 0 or status == TRACKING):
             gap = index - self._last_tracked
