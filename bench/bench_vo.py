@@ -98,10 +98,10 @@ def main() -> int:
         runs = [("orb-1000", OrbExtractor(1000), False, 0, on), ("orb-2000", OrbExtractor(2000), False, 0, on),
                 ("harris-fixture", FeatureExtractor(write_artefact(Path(tmp) / "harris"), threads=1), False, 0, on),
                 (f"default {default.height}x{default.width}", default, False, 0, on),
-                # what the travel check's descriptor matching costs; the travel check; following missed landmarks
+                # what the travel check's descriptor matching costs; the travel check; following missed landmarks (off)
                 ("default + matched ck", default, False, 0, {"travel_check_match_distance": 0.9}),
                 ("default, no travel ck", default, False, 0, {"travel_check_gap": 0}),
-                ("default, no flow", default, False, 0, {"flow_window_px": 0}),
+                ("default + flow", default, False, 0, {"flow_window_px": 15}),
                 ("default + thread", default, True, 0, on),  # mapping on a second thread
                 ("default + ahead", default, False, AHEAD, on)]  # the network 2 frames ahead on a second thread
         # Rows named by folder, or by the path given when two folders share a name (an artefact against its re-export).

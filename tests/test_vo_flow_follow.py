@@ -103,7 +103,7 @@ def test_missed_landmarks_are_added_where_the_flow_and_the_pose_agree():
 
 
 def test_flow_settings_are_checked():
-    assert VOConfig().flow_window_px >= 0
+    assert VOConfig().flow_window_px == 0  # off by default: its cost breaks the drone camera's 30 FPS on one core
     for bad in (dict(flow_window_px=-1), dict(flow_check_px=0.0), dict(flow_sigma=0.0)):
         with pytest.raises(VORuntimeError):
             VOConfig(**bad)
@@ -176,7 +176,7 @@ def test_the_travel_check_still_finds_a_broken_first_map_the_flow_follows(shared
 
     sequence = open_sequence(shared_data / "euroc_mh05_f000000-000199")
     height, width = frame_size(sequence.camera, sequence.frames)
-    vo = VisualOdometry(default_artefact(width, height), sequence.camera, VOConfig())
+    vo = VisualOdometry(default_artefact(width, height), sequence.camera, VOConfig(flow_window_px=15))
     for i, image in enumerate(read_frames(sequence.frames)):
         vo.track(lit_frame(image, "onboard", 0, i, 5), sequence.timestamps[i])
     vo.finish()

@@ -176,7 +176,7 @@ class VOConfig:
     # Landmarks the previous frame matched and this one missed, followed by optical flow (`flow_follow.py`):
     # Lucas-Kanade patch side in frame pixels (0: off), the forward-backward check in frame pixels, and the
     # followed point's relative position error in a weighted pose fit.
-    flow_window_px: int = 15
+    flow_window_px: int = 0
     flow_check_px: float = 0.5
     flow_sigma: float = 1.0
     # When the search from the constant-velocity prediction fails, the rotation since the last tracked frame
