@@ -12,7 +12,8 @@ refined once more on all matches (the caller's `tracking.refit_pose`).
 The followed point carries the landmark's descriptor, so a keyframe made from the frame observes the landmark
 there like any match; it never founds a new landmark (every followed point has one). ``frame.detected`` keeps
 the detections only: the map's probation judges the map against the frames' own matches, and a point found
-where the map said to look is no evidence of its own.
+where the map said to look is no evidence of its own. `FlowFollowing` is `MonoVO`'s gate: which frames are
+followed at all.
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ from scipy.spatial import cKDTree
 
 from vo_runtime.geometry import reprojection_errors, rvec_from_pose
 from vo_runtime.localmap import LocalMap
+from vo_runtime.states import TRACKING
 from vo_runtime.tracking import FrameData, TrackOutcome
 
 PYRAMID_LEVELS = 2  # a landmark moves a few pixels a frame; two coarser levels carry 4x that
@@ -101,3 +103,24 @@ def follow_missed_landmarks(local_map: LocalMap, previous: FrameData, previous_l
     outcome.landmark = np.concatenate([outcome.landmark, ids])
     local_map.found[ids] += 1
     return int(len(ids))
+
+
+class FlowFollowing:
+    """When `MonoVO` follows missed landmarks: a base class of `MonoVO` only, over its state (``self.map``,
+    ``self._previous``, ``self._last_tracked``, ...), as `MapLifecycle` is."""
+
+    def _follow(self, index: int, frame: FrameData, outcome: TrackOutcome, status: str) -> int:
+        """The landmarks the previous frame matched and this one missed, followed by optical flow
+        (``VOConfig.flow_window_px``); only from a frame tracked just before. Returns how many were added."""
+        cfg = self.config
+        previous = self._previous[0] if self._previous is not None else None
+        if cfg.flow_window_px <= 0 or status != TRACKING or self._last_tracked != index - 1 \
+                or previous is None or previous.image is None or frame.image is None:
+            return 0
+        # A young first map earns its keep on its own detections: a broken one is discarded when it loses its way
+        # (`_young_map_lost`), and points followed where it says to look would carry it along instead.
+        if self._young(index, min(cfg.young_map_lost_frames, cfg.young_map_frames)):
+            return 0
+        settings = FlowFollow(cfg.flow_window_px, cfg.flow_check_px, cfg.pnp_threshold_px, cfg.flow_sigma)
+        return follow_missed_landmarks(self.map, previous, self._previous[1], previous.image, frame, frame.image,
+                                       outcome, self.camera.normalise, self._focal, settings)

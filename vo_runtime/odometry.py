@@ -52,7 +52,7 @@ from vo_runtime.camera import Camera
 from vo_runtime.config import Extraction, VOConfig, VOResult
 from vo_runtime.errors import CalibrationError, VORuntimeError
 from vo_runtime.features import FeatureExtractor, Features, detector_pixel, keypoint_sigma, to_gray_u8
-from vo_runtime.flow_follow import FlowFollow, follow_missed_landmarks
+from vo_runtime.flow_follow import FlowFollowing
 from vo_runtime.frame_intake import FrameIntake
 from vo_runtime.geometry import camera_centre, invert_pose
 from vo_runtime.initialiser import Initialiser
@@ -70,7 +70,7 @@ from vo_runtime.travel_check import TravelCheck
 
 
 
-class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
+class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep, FlowFollowing):
     """Monocular VO over a stream of frames.
 
     Args:
@@ -294,22 +294,6 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep):
         if outcome is None:
             return
         self._start_map(index, outcome, result)
-
-    def _follow(self, index: int, frame: FrameData, outcome, status: str) -> int:
-        """The landmarks the previous frame matched and this one missed, followed by optical flow
-        (``VOConfig.flow_window_px``, `flow_follow.py`); only from a frame tracked just before."""
-        cfg = self.config
-        previous = self._previous[0] if self._previous is not None else None
-        if cfg.flow_window_px <= 0 or status != TRACKING or self._last_tracked != index - 1 \
-                or previous is None or previous.image is None or frame.image is None:
-            return 0
-        # A young first map earns its keep on its own detections: a broken one is discarded when it loses its way
-        # (`_young_map_lost`), and points followed where it says to look would carry it along instead.
-        if self._young(index, min(cfg.young_map_lost_frames, cfg.young_map_frames)):
-            return 0
-        settings = FlowFollow(cfg.flow_window_px, cfg.flow_check_px, cfg.pnp_threshold_px, cfg.flow_sigma)
-        return follow_missed_landmarks(self.map, previous, self._previous[1], previous.image, frame, frame.image,
-                                       outcome, self.camera.normalise, self._focal, settings)
 
     def _predict(self, index: int) -> np.ndarray:
         """Constant velocity: the last motion repeated once per frame since the last tracked frame."""
