@@ -176,8 +176,9 @@ class VOConfig:
     # Landmarks the previous frame matched and this one missed, followed by optical flow (`flow_follow.py`):
     # Lucas-Kanade patch side in frame pixels (0: off), the forward-backward check in frame pixels, and the
     # followed point's relative position error in a weighted pose fit. 15 against off, 30 mid-flight drone runs:
-    # dark 0.88x, onboard 0.93x; the car in the dark presets ahead too (docs/vo_euroc.md, "Landmarks the detector
-    # missed"). Off: at 480x752 the VO runs 26.8 FPS on one core with it, 31.6 without (30 needed).
+    # dark 0.98x, onboard 0.94x (docs/vo_euroc.md, "Landmarks the detector missed" and "The flow made cheaper").
+    # Off: at 480x752 the VO runs 26.8 FPS on one core with it, 31.6 without (30 needed); cheaper windows, one
+    # pyramid level or no flow back gain no more.
     flow_window_px: int = 0
     flow_check_px: float = 0.5
     flow_sigma: float = 1.0
