@@ -13,7 +13,7 @@ from vo_runtime.config import VOConfig
 from vo_runtime.errors import VORuntimeError
 from vo_runtime.geometry import camera_centre
 from vo_runtime.mapping import MappingConfig
-from vo_runtime.pose import refine_pose, second_opinion
+from vo_runtime.pose import ransac_pose, refine_pose, second_opinion
 
 FOCAL = 450.0
 THRESHOLD = 3.0 / FOCAL
@@ -144,3 +144,19 @@ def test_the_dark_mid_flight_start_keeps_its_direction_only_with_the_check(share
         assert error_deg < 25.0
     else:
         assert error_deg > (45.0 if artefact == "3x3" else 25.0)
+
+
+def test_ransac_on_a_collapsed_cloud_is_no_pose_not_a_crash():
+    """A map whose scale collapsed holds its landmarks within a hundred-thousandth of the view's extent; OpenCV's
+    SQPnP asserts on such a cloud (it crashed the VO on a long dark flight). The fit is then simply missing."""
+    rng = np.random.default_rng(0)
+    scene = np.c_[rng.uniform(-2, 2, 46), rng.uniform(-1.5, 1.5, 46), rng.uniform(4, 10, 46)]
+    image = scene[:, :2] / scene[:, 2:]
+    collapsed = np.array([-1.9, 0.2, -0.12]) + 1e-5 * (scene - scene.mean(axis=0))
+    with pytest.raises(cv2.error):  # what OpenCV does with it, so this test keeps checking the guard
+        cv2.solvePnPRansac(collapsed, image, np.eye(3), None, iterationsCount=100, reprojectionError=THRESHOLD,
+                           confidence=0.999, flags=cv2.SOLVEPNP_SQPNP)
+    assert ransac_pose(collapsed, image, THRESHOLD, 20) is None
+    fit = ransac_pose(scene, image, THRESHOLD, 20)  # the same views of the scene at its size: found
+    assert fit is not None and fit[1].all()
+    np.testing.assert_allclose(fit[0], np.eye(4), atol=1e-6)

@@ -88,9 +88,15 @@ def ransac_pose(world: np.ndarray, image: np.ndarray, threshold: float, min_inli
     """
     if len(world) < max(min_inliers, 6):
         return None
-    ok, rvec, tvec, inl = cv2.solvePnPRansac(world, image, np.eye(3), None, iterationsCount=iterations,
-                                             reprojectionError=threshold, confidence=0.999,
-                                             flags=cv2.SOLVEPNP_SQPNP)
+    try:
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(world, image, np.eye(3), None, iterationsCount=iterations,
+                                                 reprojectionError=threshold, confidence=0.999,
+                                                 flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        # SQPnP asserts on a degenerate cloud: landmarks of a map whose scale collapsed, a hundred-thousandth
+        # of the view's extent (ORB in the onboard light, 1,400 frames into the drone clip flown there and back
+        # five times, crashed the VO here). No pose is the answer: the frame falls to the next fallback.
+        return None
     if not ok or inl is None or len(inl) < min_inliers:
         return None
     return refine_pose(world, image, pose_from_rvec(rvec, tvec), threshold, min_inliers)
