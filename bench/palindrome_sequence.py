@@ -34,11 +34,13 @@ def _rows(path: Path) -> tuple[str, list[list[str]]]:
     return lines[0], [line.split(",") for line in lines[1:] if line and not line.startswith("#")]
 
 
-def write_palindrome(source: Path, target: Path) -> int:
-    """Write ``target``/mav0 from ``source``/mav0 (cam0 and the ground truth); returns the frame count."""
+def write_palindrome(source: Path, target: Path, laps: int = 1) -> int:
+    """Write ``target``/mav0 from ``source``/mav0 (cam0 and the ground truth), the flight there and back
+    ``laps`` times; returns the frame count."""
     cam_header, frames = _rows(source / "mav0/cam0/data.csv")
     truth_header, truth = _rows(source / "mav0/state_groundtruth_estimate0/data.csv")
-    order = list(range(len(frames))) + list(range(len(frames) - 2, -1, -1))
+    lap = list(range(len(frames) - 1)) + list(range(len(frames) - 1, 0, -1))  # there and back, less the last 0
+    order = lap * laps + [0]
     # Each source frame's ground-truth row as the VO's reader associates it (nearest, within 5 ms; none beyond).
     nearest, gaps = nearest_samples(np.array([int(row[0]) for row in truth], np.float64),
                                     [int(row[0]) for row in frames])
@@ -63,7 +65,11 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("source", type=Path, help="a EuRoC ASL sequence (the folder holding mav0/)")
     parser.add_argument("target", type=Path, help="the new sequence's folder (must not exist)")
+    parser.add_argument("--laps", type=int, default=1, help="times the flight goes there and back (default 1)")
     args = parser.parse_args()
+    if args.laps < 1:
+        print(f"error: --laps must be at least 1, got {args.laps}", file=sys.stderr)
+        return 2
     if not (args.source / "mav0/cam0/data.csv").is_file() \
             or not (args.source / "mav0/state_groundtruth_estimate0/data.csv").is_file():
         print(f"error: {args.source} is not a EuRoC ASL sequence with ground truth (mav0/cam0/data.csv, "
@@ -77,7 +83,7 @@ def main() -> int:
     # removes only what this run wrote.
     partial = Path(tempfile.mkdtemp(prefix=args.target.name + ".partial-", dir=args.target.parent))
     try:
-        count = write_palindrome(args.source, partial)
+        count = write_palindrome(args.source, partial, args.laps)
     except (ValueError, IndexError, OSError) as error:
         shutil.rmtree(partial, ignore_errors=True)
         print(f"error: {args.source}: {error}", file=sys.stderr)

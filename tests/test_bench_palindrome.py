@@ -36,6 +36,19 @@ def test_frames_run_there_and_back_with_their_own_ground_truth(tmp_path):
     assert [p.name for p in (tmp_path / "out").iterdir()] == ["back"]  # nothing else left beside it
 
 
+def test_laps_fly_there_and_back_again_without_repeating_the_turning_frames(tmp_path):
+    source = open_sequence(write_mav0(tmp_path / "seq", frames=3))
+    done = _run(tmp_path / "seq", tmp_path / "laps", "--laps", 3)
+    assert done.returncode == 0, done.stderr
+    played = open_sequence(tmp_path / "laps")
+    order = [0, 1, 2, 1] * 3 + [0]
+    assert [Path(f).resolve() for f in played.frames] == [Path(source.frames[i]).resolve() for i in order]
+    assert np.all(np.diff(played.timestamps) > 0)
+    refused = _run(tmp_path / "seq", tmp_path / "none", "--laps", 0)
+    assert refused.returncode == 2 and refused.stderr.startswith("error:") and len(refused.stderr.splitlines()) == 1
+    assert not (tmp_path / "none").exists()
+
+
 def test_an_existing_target_or_a_folder_without_mav0_is_one_error_line(tmp_path):
     write_mav0(tmp_path / "seq", frames=3)
     (tmp_path / "mine").mkdir()
