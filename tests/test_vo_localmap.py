@@ -188,3 +188,37 @@ def test_neighbour_keyframes_gain_the_observations_tracking_missed():
     assert np.array_equal(middle.landmark[rows[:40]], np.arange(40))  # each at its own keypoint
     assert (middle.landmark[rows[40:]] < 0).all()
     assert all(list(local_map.observations[i]) == [0, 1, 2] for i in range(40))  # kept in keyframe order
+
+
+def test_landmarks_only_old_keyframes_see_retire_and_their_ids_are_reused_only_after_the_horizon():
+    world, desc = scene(50)
+    poses = [pose_at(0.0, (0.5 * k, 0, 0)) for k in range(3)]
+    local_map = map_with_keyframes(world, desc, poses[:2])  # landmarks 0-49 seen by keyframes 0 and 1
+    frame, order = frame_from(world, desc, poses[2], seed=2)
+    later = np.full(len(order), -1, np.int64)
+    later[np.argsort(order)[:10]] = np.arange(10)  # keyframe 2 sees landmarks 0-9 again
+    local_map.add_keyframe(Keyframe(2, poses[2], frame.points, frame.pixels, frame.descriptors, later))
+    local_map.retire(1)  # keyframe 1 is behind the horizon: what only keyframes 0 and 1 see dies
+    assert set(np.flatnonzero(local_map.alive[:local_map.size]).tolist()) == set(range(10))
+    assert set(local_map.keyframes[0].landmark_ids().tolist()) == set(range(10))
+    local_map.recycle(2)  # they died with 3 keyframes in the map: not yet free
+    fresh = local_map.add_landmarks(world[:5], [(1, np.arange(5)), (2, np.arange(5))], np.full(5, 3.0))
+    assert fresh.tolist() == list(range(50, 55))
+    local_map.recycle(3)
+    reused = local_map.add_landmarks(world[:5] + 1.0, [(1, np.arange(5)), (2, np.arange(5))], np.full(5, 3.0))
+    assert set(reused.tolist()) <= set(range(10, 50)) and local_map.size == 55
+    assert all(local_map.observations[i] == {1: r, 2: r} for r, i in enumerate(reused.tolist()))
+    np.testing.assert_allclose(local_map.positions[reused], world[:5] + 1.0)
+    assert local_map.alive[reused].all() and (local_map.created[reused] == 2).all()
+
+
+def test_a_released_keyframe_keeps_its_pose_and_observations_but_not_its_descriptors():
+    world, desc = scene(50)
+    local_map = map_with_keyframes(world, desc, [pose_at(0.0, (0, 0, 0)), pose_at(0.0, (0.5, 0, 0))])
+    before = local_map.landmarks_of([0])
+    local_map.release_descriptors(0)
+    assert local_map.keyframes[0].descriptors is None
+    np.testing.assert_array_equal(local_map.landmarks_of([0]), before)
+    local_map._update_descriptors(before)  # the medoid is then chosen among the views that kept theirs
+    frame, order = frame_from(world, desc, pose_at(0.0, (0.5, 0, 0)), seed=1)
+    np.testing.assert_allclose(local_map.descriptors[order], frame.descriptors)

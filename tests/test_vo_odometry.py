@@ -320,6 +320,23 @@ def test_keyframes_follow_the_gap_and_the_view_change():
     assert len(eager_keyframes) > 2 and np.diff(eager_keyframes).max() < 50
 
 
+def test_old_keyframes_release_their_descriptors_and_the_track_goes_on(monkeypatch):
+    import vo_runtime.keyframing as keyframing
+
+    poses = straight_then_turn(60)
+    kept = run(SyntheticExtractor(poses, noise_px=0.5), 60, VOConfig(keyframe_max_gap=2))
+    monkeypatch.setattr(keyframing, "MAP_HORIZON_KEYFRAMES", 4)
+    released = run(SyntheticExtractor(poses, noise_px=0.5), 60, VOConfig(keyframe_max_gap=2))
+    keyframes = released.map.keyframes
+    assert len(keyframes) > 12
+    assert all(k.descriptors is None for k in keyframes[:-4]) and all(k.descriptors is not None for k in keyframes[-4:])
+    assert all(k.descriptors is not None for k in kept.map.keyframes)
+    assert tracked(released) == tracked(kept)  # every frame tracked either way, and as accurately
+    first = tracked(released)[0]
+    error, _ = ate([r.pose for r in released.results[first:]], poses[first:])
+    assert error < 0.005 * 0.3 * (60 - first)  # 0.5 % of the path (kept: 0.026 m, released: 0.032 m of 14 m)
+
+
 @pytest.mark.parametrize("features", ["orb", "artefact"])  # the artefact resizes: patch alignment on
 def test_mapping_thread_gives_the_same_poses_as_inline_mapping(shared_data, features):
     # The worker only runs between one frame's tracking and the next, so nothing may change but the time.

@@ -20,6 +20,12 @@ from vo_runtime.refine import align_rows
 from vo_runtime.tracking import LOCAL_MAP, FrameData
 
 ALIGN_KEYFRAMES = 12  # keyframes that keep their image for patch alignment (the local map's 8 and some)
+# The map's horizon, in keyframes: tracking's local map and the mapping's partners and windows are covisible
+# keyframes at most 30 back (`LocalMap.covisible`), a relocalisation tries the last 5. A keyframe this far back
+# releases its descriptors, the landmarks only it and older ones observe die, and the ids of landmarks dead
+# this long are reused, so a long flight's memory stops growing with the keyframes' descriptors (0.5 MB each)
+# and the landmarks' arrays (docs/vo.md, "A long flight").
+MAP_HORIZON_KEYFRAMES = 100
 
 
 class KeyframeUpkeep:
@@ -46,6 +52,10 @@ class KeyframeUpkeep:
         number = self.map.add_keyframe(keyframe)
         if number >= ALIGN_KEYFRAMES:  # bounded memory: older keyframes are rarely a landmark's latest view
             self.map.keyframes[number - ALIGN_KEYFRAMES].gray = None
+        if number >= MAP_HORIZON_KEYFRAMES:
+            self.map.release_descriptors(number - MAP_HORIZON_KEYFRAMES)
+            self.map.retire(number - MAP_HORIZON_KEYFRAMES)
+            self.map.recycle(number - MAP_HORIZON_KEYFRAMES)
         self._anchors[number] = [(index, np.eye(4))]
         job = lambda: self._map_keyframe(number, frame, keyframe, result)  # noqa: E731
         if self.config.mapping_thread:

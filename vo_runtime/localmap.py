@@ -7,10 +7,12 @@ keyframes that observe it, and two counters for culling: how often it was predic
 frame (``visible``) and how often it was matched there (``found``).
 
 Landmark ids are rows of the arrays here; dead landmarks keep their row (``alive`` is False) so ids stay
-valid. Arrays grow by doubling, so adding a keyframe's landmarks does not copy the whole map each time.
+valid, until `recycle` gives rows dead for long enough (`keyframing.MAP_HORIZON_KEYFRAMES`) to new
+landmarks. Arrays grow by doubling, so adding a keyframe's landmarks does not copy the whole map each time.
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +26,7 @@ class Keyframe:
     pose_cw: np.ndarray      # world-to-camera 4x4
     points: np.ndarray       # normalised image points [N, 2]
     pixels: np.ndarray       # [N, 2]
-    descriptors: np.ndarray  # [N, D], unit rows
+    descriptors: np.ndarray | None  # [N, D], unit rows; None once released (`LocalMap.release_descriptors`)
     landmark: np.ndarray     # [N] landmark id observed by each keypoint, -1 where none
     gray: np.ndarray | None = None  # the frame, uint8, for patch alignment (`refine.py`); dropped when old
     sigma: np.ndarray | None = None  # [N] keypoints' expected position errors, relative (`FrameData.sigma`)
@@ -48,6 +50,10 @@ class LocalMap:
         self.created = np.zeros(capacity, np.int64)   # keyframe that created it
         self.angles = np.zeros(capacity)              # ray angle (degrees) of the views it was triangulated from
         self.observations: list[dict[int, int]] = []  # per landmark: keyframe -> keypoint row
+        # Ids of dead landmarks, batched by the keyframe count at their death: `recycle` hands them to new
+        # landmarks once no frame's state can still name them, so a long flight's arrays stop growing.
+        self._dead: deque[tuple[int, list[int]]] = deque()
+        self._free: list[int] = []
 
     # ------------------------------------------------------------------ building
     def add_keyframe(self, keyframe: Keyframe) -> int:
@@ -69,15 +75,17 @@ class LocalMap:
         each (keyframe, keypoint rows) in ``seen_by``. The last keyframe listed is the creating one. Returns
         their ids."""
         count = len(positions)
-        self._reserve(self.size + count)
-        ids = np.arange(self.size, self.size + count)
-        self.size += count
+        reused, self._free = self._free[:count], self._free[count:]
+        fresh = count - len(reused)
+        self._reserve(self.size + fresh)
+        ids = np.concatenate([np.asarray(reused, np.int64), np.arange(self.size, self.size + fresh)])
+        self.size += fresh
         self.positions[ids] = positions
         self.angles[ids] = angles
         self.alive[ids] = True
         self.visible[ids] = self.found[ids] = 1
         self.created[ids] = seen_by[-1][0]
-        self.observations.extend({} for _ in range(count))
+        self.observations.extend({} for _ in range(fresh))  # a reused id's observations were emptied at its death
         for number, rows in seen_by:
             self.keyframes[number].landmark[rows] = ids
             for landmark, row in zip(ids.tolist(), rows.tolist()):
@@ -107,6 +115,7 @@ class LocalMap:
                 self.kill(np.array([landmark]))
 
     def kill(self, landmarks: np.ndarray) -> None:
+        died = []
         for landmark in np.asarray(landmarks).tolist():
             if not self.alive[landmark]:
                 continue
@@ -114,6 +123,20 @@ class LocalMap:
             for number, row in self.observations[landmark].items():
                 self.keyframes[number].landmark[row] = -1
             self.observations[landmark] = {}
+            died.append(landmark)
+        if died:
+            self._dead.append((len(self.keyframes), died))
+
+    def retire(self, number: int) -> None:
+        """Kill the landmarks no keyframe after ``number`` observes: keyframe ``number`` is so old that
+        tracking's local map and the mapping's windows (recent covisible keyframes) no longer reach them."""
+        ids = self.keyframes[number].landmark_ids()
+        self.kill(np.array([i for i in ids.tolist() if max(self.observations[i]) <= number], np.int64))
+
+    def recycle(self, before: int) -> None:
+        """Free for reuse the ids of landmarks that died while the map held at most ``before`` keyframes."""
+        while self._dead and self._dead[0][0] <= before:
+            self._free.extend(self._dead.popleft()[1])
 
     # ------------------------------------------------------------------ queries
     def covisible(self, number: int, count: int, recent: int = 30) -> list[int]:
@@ -140,6 +163,12 @@ class LocalMap:
         ids = np.unique(np.concatenate([self.keyframes[k].landmark_ids() for k in keyframes]))
         return ids[self.alive[ids]]
 
+    def release_descriptors(self, number: int) -> None:
+        """Forget keyframe ``number``'s descriptors (its pose, keypoints and observations stay): the search for
+        new landmarks and the neighbour search only read recent keyframes' descriptors, and at 512 x 256 floats
+        they are 0.5 MB of the ~0.52 MB a keyframe holds, so a long flight's memory stops growing with them."""
+        self.keyframes[number].descriptors = None
+
     def observation_counts(self, landmarks: np.ndarray) -> np.ndarray:
         return np.array([len(self.observations[i]) for i in landmarks.tolist()], np.int64)
 
@@ -161,7 +190,8 @@ class LocalMap:
         latest keyframe observations, as a binary or learnt descriptor has no meaningful mean."""
         by_count: dict[int, tuple[list[int], list[np.ndarray]]] = {}  # grouped by observations used, batched
         for landmark in np.asarray(landmarks).tolist():
-            seen = list(self.observations[landmark].items())[-DESCRIPTOR_OBSERVATIONS:]
+            seen = [(k, row) for k, row in self.observations[landmark].items()
+                    if self.keyframes[k].descriptors is not None][-DESCRIPTOR_OBSERVATIONS:]
             if not seen:
                 continue
             if len(seen) <= 2:  # no medoid among two: the latest

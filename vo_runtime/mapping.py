@@ -202,6 +202,8 @@ def triangulate_new_landmarks(local_map: LocalMap, number: int, config: MappingC
     created = 0
     for other_number in neighbours:
         other = local_map.keyframes[other_number]
+        if other.descriptors is None:  # released: an old keyframe (`LocalMap.release_descriptors`)
+            continue
         if baseline_rule and short_baseline(local_map, other_number, number, config.min_baseline_depth):
             continue
         # Bounded work: the strongest keypoints without a landmark (features come sorted by score).
@@ -239,6 +241,8 @@ def observe_in_neighbours(local_map: LocalMap, number: int, config: MappingConfi
     added = 0
     for other_number in local_map.covisible(number, config.neighbour_keyframes):
         other = local_map.keyframes[other_number]
+        if other.descriptors is None:
+            continue
         unseen = ids[np.array([other_number not in local_map.observations[i] for i in ids.tolist()], bool)]
         free = np.flatnonzero(other.landmark < 0)
         if len(unseen) == 0 or len(free) == 0:
