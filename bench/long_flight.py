@@ -30,7 +30,7 @@ from vo_runtime.artefact import default_artefact  # noqa: E402
 from vo_runtime.datasets import frame_size, open_sequence  # noqa: E402
 from vo_runtime.errors import VORuntimeError  # noqa: E402
 from vo_runtime.evaluate import evaluate, sequence_groundtruth  # noqa: E402
-from vo_runtime.localmap import LocalMap  # noqa: E402
+from vo_runtime.localmap import LANDMARK_ARRAYS, LocalMap  # noqa: E402
 from vo_runtime.odometry import TRACKED_STATES  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
 
@@ -40,8 +40,7 @@ def map_bytes(local_map: LocalMap | None) -> int:
     the first map."""
     if local_map is None:
         return 0
-    total = sum(array.nbytes for name in ("positions", "descriptors", "alive", "visible", "found", "created",
-                                          "angles") for array in [getattr(local_map, name)])
+    total = sum(getattr(local_map, name).nbytes for name in LANDMARK_ARRAYS)
     for keyframe in local_map.keyframes:
         total += sum(array.nbytes for array in (keyframe.points, keyframe.pixels, keyframe.descriptors,
                                                  keyframe.landmark, keyframe.gray, keyframe.sigma)

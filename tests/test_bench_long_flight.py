@@ -8,6 +8,7 @@ from pathlib import Path
 
 from tests.test_vo_euroc import write_mav0
 from tests.test_vo_localmap import map_with_keyframes, pose_at, scene
+from vo_runtime.localmap import LANDMARK_ARRAYS
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "bench" / "long_flight.py"
@@ -23,8 +24,7 @@ def _run(*args) -> subprocess.CompletedProcess:
 def test_map_bytes_count_every_array_and_drop_with_released_descriptors():
     world, desc = scene(50)
     local_map = map_with_keyframes(world, desc, [pose_at(0.0, (0, 0, 0)), pose_at(0.0, (0.5, 0, 0))])
-    landmarks = sum(getattr(local_map, name).nbytes for name in ("positions", "descriptors", "alive", "visible",
-                                                                  "found", "created", "angles"))
+    landmarks = sum(getattr(local_map, name).nbytes for name in LANDMARK_ARRAYS)
     keyframe = local_map.keyframes[0]
     each = keyframe.points.nbytes + keyframe.pixels.nbytes + keyframe.descriptors.nbytes + keyframe.landmark.nbytes
     assert map_bytes(local_map) == landmarks + 2 * each

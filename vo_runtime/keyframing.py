@@ -53,9 +53,10 @@ class KeyframeUpkeep:
         if number >= ALIGN_KEYFRAMES:  # bounded memory: older keyframes are rarely a landmark's latest view
             self.map.keyframes[number - ALIGN_KEYFRAMES].gray = None
         if number >= MAP_HORIZON_KEYFRAMES:
-            self.map.release_descriptors(number - MAP_HORIZON_KEYFRAMES)
-            self.map.retire(number - MAP_HORIZON_KEYFRAMES)
-            self.map.recycle(number - MAP_HORIZON_KEYFRAMES)
+            behind = number - MAP_HORIZON_KEYFRAMES
+            self.map.release_descriptors(behind)
+            self.map.retire(behind)
+            self.map.recycle(behind)
         self._anchors[number] = [(index, np.eye(4))]
         job = lambda: self._map_keyframe(number, frame, keyframe, result)  # noqa: E731
         if self.config.mapping_thread:

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# The per-landmark arrays, one row per landmark id (grown together by `LocalMap._reserve`).
+LANDMARK_ARRAYS = ("positions", "descriptors", "alive", "visible", "found", "created", "angles")
 DESCRIPTOR_OBSERVATIONS = 4  # observations the representative descriptor is chosen from (the latest ones)
 
 
@@ -179,7 +181,7 @@ class LocalMap:
             return
         while capacity < size:
             capacity *= 2
-        for name in ("positions", "descriptors", "alive", "visible", "found", "created", "angles"):
+        for name in LANDMARK_ARRAYS:
             old = getattr(self, name)
             grown = np.zeros((capacity,) + old.shape[1:], old.dtype)
             grown[: len(old)] = old
