@@ -50,7 +50,7 @@ from vo_runtime.errors import VORuntimeError  # noqa: E402
 from vo_runtime.evaluate import evaluate, plot_trajectory, scored_results, sequence_groundtruth  # noqa: E402
 from vo_runtime.features import KeypointBudget, to_gray_u8  # noqa: E402
 from vo_runtime.lowlight import PRESETS  # noqa: E402
-from vo_runtime.odometry import INITIALISING, SKIPPED, TRACKED_STATES  # noqa: E402
+from vo_runtime.odometry import INITIALISING, REINITIALISED, SKIPPED, TRACKED_STATES  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
 from vo_runtime.trajectory import write_trajectory  # noqa: E402
 from bench.vo_peers import PEER_KEYPOINTS, PeerExtractor, is_peer  # noqa: E402
@@ -131,6 +131,9 @@ def run_one(sequence_dir: Path, features: str, light: str, keypoints: int, confi
            "initialised_at": first, "tracked": sum(s in TRACKED_STATES for s in after), "after_init": len(after),
            "states": {s: states.count(s) for s in dict.fromkeys(states)},
            "keyframes": sum(r.keyframe for r in results),
+           "merges": [(r.index, round(r.merged_scale, 3)) for r in results if r.merged_scale is not None],
+           "abandoned_at": [r.index for r in results if r.problem and r.problem.startswith("map abandoned")],
+           "reinitialised_at": [r.index for r in results if r.status == REINITIALISED],
            "first_map_landmarks": results[first].num_landmarks if first < len(results) else None,
            "fps": 1000.0 * len(results) / max(sum(r.extract_ms + r.track_ms for r in results), 1e-9),
            "extract_ms": float(np.median([r.extract_ms for r in results])),

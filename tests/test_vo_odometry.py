@@ -29,6 +29,15 @@ def straight_then_turn(frames: int, step: float = 0.3) -> list[np.ndarray]:
     return poses
 
 
+def creeping_before(frame: int, poses: list[np.ndarray]) -> list[np.ndarray]:
+    """``poses`` whose four steps before ``frame`` are a tenth as long (as a failing map's last steps look)."""
+    steps = np.diff([pose[:3, 3] for pose in poses], axis=0, prepend=np.zeros((1, 3)))
+    steps[frame - 4:frame] *= 0.1
+    for pose, position in zip(poses, np.cumsum(steps, axis=0)):
+        pose[:3, 3] = position
+    return poses
+
+
 class SyntheticExtractor:
     """Returns the visible points of the current pose as `Features`; `blackout` frames get none."""
 
@@ -207,11 +216,7 @@ def test_reinitialisation_scale_is_the_median_speed_before_the_loss(speed_frames
     # Frames 26-29 creep at a tenth of the speed (as a failing map's shrinking last steps look), then the
     # camera is lost at frame 30 and moves on at full speed: the new map's scale follows the median speed of
     # the last speed_frames tracked frames (20: the full speed; 1: the creep, ten times too short).
-    poses = straight_then_turn(60)
-    steps = np.diff([pose[:3, 3] for pose in poses], axis=0, prepend=np.zeros((1, 3)))
-    steps[26:30] *= 0.1
-    for pose, position in zip(poses, np.cumsum(steps, axis=0)):
-        pose[:3, 3] = position
+    poses = creeping_before(30, straight_then_turn(60))
     vo = run(SyntheticExtractor(poses, scramble=frozenset({30})), 60,
              VOConfig(relocalise_keyframes=0, lost_predict_frames=0, speed_frames=speed_frames, young_map_frames=0))
     statuses = [r.status for r in vo.results]

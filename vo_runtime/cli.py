@@ -198,6 +198,7 @@ def _run(args: argparse.Namespace, claim: OutputClaim | None) -> int:
         "frames": len(vo.results), "states": {s: states.count(s) for s in dict.fromkeys(states)},
         "skipped_frames": len(skipped),
         "maps_dropped": len(dropped),
+        "maps_merged": sum(r.merged_scale is not None for r in vo.results),
         "median_extract_ms": round(float(np.median([r.extract_ms for r in used])), 2),
         "median_track_ms": round(float(np.median([r.track_ms for r in used])), 2),
         "median_inliers": float(np.median([r.num_inliers for r in used])),
@@ -257,6 +258,8 @@ def _frame_record(result: VOResult, path: Path) -> dict[str, Any]:
         record["problem"] = result.problem
     if result.map_dropped:
         record["map_dropped"] = True
+    if result.merged_scale is not None:
+        record["merged_scale"] = round(result.merged_scale, 4)
     return record
 
 

@@ -96,6 +96,16 @@ class VOConfig:
     keyframe_min_gap: int = 1            # ... but not sooner than this many frames after the last
     relocalise_keyframes: int = 5        # recent keyframes a lost frame tries to relocalise against (0: never)
     relocalise_frames: int = 3           # failed relocalisations before a fresh initialisation may start
+    # A map re-initialised after a loss has a guessed scale (the speed before the loss); its next this many
+    # keyframes look for the lost map's last `relocalise_keyframes` keyframes, and two in a row that find them
+    # at one scale move the new map into the lost map's frame and scale (`map_merge.py`; 0: never, the default
+    # until the dev table is measured with it: 20 turns it on). A find needs merge_min_pairs landmarks of both
+    # maps whose depth ratios agree to merge_max_spread (median absolute deviation / median), the two finds'
+    # scales agree to it too.
+    merge_keyframes: int = 0
+    merge_min_pairs: int = 12
+    merge_max_spread: float = 0.1
+    merge_abandoned: bool = True  # a map the travel check abandoned is looked for too (its keyframes before the check)
     # After a loss the motion model keeps predicting for this many frames since the last tracked one, and
     # tracking against the local map is tried before relocalisation: one bad frame (a noise burst in the
     # dark) does not throw away the map's prediction (0: relocalisation only).
@@ -214,6 +224,8 @@ class VOConfig:
                 or not 0 <= self.travel_check_match_distance <= 2:
             raise VORuntimeError("travel_check_gap must be >= 0, travel_check_frames >= 1, travel_check_min_inliers "
                                  ">= 5, the travel check's angles > 0 and travel_check_match_distance in [0, 2]")
+        if self.merge_keyframes < 0 or self.merge_min_pairs < 6 or self.merge_max_spread <= 0:
+            raise VORuntimeError("merge_keyframes must be >= 0, merge_min_pairs >= 6 and merge_max_spread > 0")
         if self.speed_frames < 1:
             raise VORuntimeError("speed_frames must be >= 1")
         if self.pose_check_jump <= 0 or not 0 < self.pose_check_share <= 1:
@@ -239,6 +251,8 @@ class VOResult:
     keyframe: bool = False  # became a keyframe (adds landmarks, runs the local bundle adjustment)
     problem: str | None = None  # why a skipped frame could not be used, or why a map was dropped here
     map_dropped: bool = False   # the VO threw its map away here (probation, young map lost, travel check; see problem)
+    merged_scale: float | None = None  # a re-initialised map found the lost one here and took its frame: the
+    #                                    ratio of their scales (lost / new; 1: the guessed scale was right)
     tracked_by: str | None = None  # local map | wide search | previous frame | relocalisation | two-view
     mapping_ms: float = 0.0  # keyframe work (triangulation, bundle adjustment, culling): part of track_ms,
     #                          or on the worker thread with VOConfig.mapping_thread

@@ -12,6 +12,7 @@ import numpy as np
 from vo_runtime.config import VOResult
 from vo_runtime.geometry import invert_pose, per_frame_motion
 from vo_runtime.localmap import Keyframe, LocalMap
+from vo_runtime.map_merge import find_in_lost_map
 from vo_runtime.states import INITIALISING, LOST, REINITIALISED, TRACKING
 from vo_runtime.tracking import FrameData
 
@@ -95,7 +96,10 @@ class MapLifecycle:
         if self.config.young_map_travel and self._young(index):
             self._discard_young_map(index, result, why)
         else:
+            lost = self.map
             self._forget_map()
+            if self.config.merge_abandoned:
+                self._keep_lost_map(lost, before)  # its keyframes before the frames that judged it broken
             self._speeds.extend(speeds)
             self._probation.end()
             result.status, result.tracked_by, result.map_dropped = LOST, None, True
@@ -115,6 +119,8 @@ class MapLifecycle:
     def _start_map(self, index: int, outcome, result: VOResult) -> None:
         """A (re)initialisation succeeded: a new map of two keyframes."""
         reinitialised = self.map is not None or bool(self._speeds)
+        if self.map is not None:  # lost, not thrown away: look for it again
+            self._keep_lost_map(self.map, self.map.keyframes[-1].frame)
         self.map = LocalMap(outcome.current.descriptors.shape[1])
         self._anchors = {}
         reference, current = outcome.reference, outcome.current
@@ -143,3 +149,46 @@ class MapLifecycle:
         result.keyframe = True
         result.num_inliers = outcome.inliers
         result.num_landmarks = len(outcome.world)
+
+    def _keep_lost_map(self, lost: LocalMap, until: int) -> None:
+        """A map replaced after a loss is looked for by the next map (`_merge_lost_map`): its last
+        ``relocalise_keyframes`` keyframes made at most at frame ``until``."""
+        numbers = [number for number, keyframe in enumerate(lost.keyframes) if keyframe.frame <= until]
+        if self.config.merge_keyframes > 0 and self.config.relocalise_keyframes > 0 and numbers:
+            self._lost_map, self._merge_tries, self._merge_candidate = lost, self.config.merge_keyframes, None
+            self._lost_keyframes = numbers[::-1][:self.config.relocalise_keyframes]
+
+    def _merge_lost_map(self, index: int, frame: FrameData, landmark: np.ndarray, result: VOResult) -> None:
+        """A keyframe-to-be of a map re-initialised after a loss looks for the lost map (`map_merge.py`); when
+        found, the new map, the frames tracked on it and the motion model move into the lost map's frame and
+        scale, and the lost map is let go (as it is after ``merge_keyframes`` tries)."""
+        cfg = self.config
+        self._merge_tries -= 1
+        new_positions = np.full((len(landmark), 3), np.nan)
+        seen = landmark >= 0
+        new_positions[seen] = self.map.positions[landmark[seen]]
+        found = find_in_lost_map(self._lost_map, self._lost_keyframes, frame.points, frame.descriptors,
+                                 new_positions, self._poses_cw[index], cfg.pnp_threshold_px / self._focal,
+                                 cfg.merge_min_pairs, cfg.merge_max_spread, cfg.match_max_distance, cfg.match_ratio)
+        # Two keyframes in a row must find it at one scale: a single find on a dozen pairs can be a look-alike.
+        confirmed = found is not None and self._merge_candidate is not None and \
+            abs(found.scale / self._merge_candidate - 1) <= cfg.merge_max_spread
+        self._merge_candidate = None if found is None else found.scale
+        if not confirmed:
+            if self._merge_tries <= 0:
+                self._lost_map = None
+            return
+        self._lost_map, self._merge_candidate = None, None
+        for keyframe in self.map.keyframes:
+            keyframe.pose_cw = found.pose(keyframe.pose_cw)
+        self.map.positions[:self.map.size] = found.point(self.map.positions[:self.map.size])
+        for number, anchored in self._anchors.items():
+            self._anchors[number] = [(frame_index, found.relative(relative)) for frame_index, relative in anchored]
+            self._follow_keyframe(number)
+        self._poses_cw[index] = found.pose(self._poses_cw[index])
+        self._velocity = found.relative(self._velocity)
+        self._speeds = type(self._speeds)((speed * found.scale for speed in self._speeds), self._speeds.maxlen)
+        self._speed_log = type(self._speed_log)(((number, speed * found.scale) for number, speed in self._speed_log),
+                                                self._speed_log.maxlen)
+        self._travel.clear()  # its frames' poses were in the new map's frame
+        result.merged_scale = found.scale

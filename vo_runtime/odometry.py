@@ -135,6 +135,10 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep, FlowFollowing):
         # from the frames before those that judged it broken (`_abandon_map`).
         self._speed_log: deque[tuple[int, float]] = deque(maxlen=3 * self.config.speed_frames)
         self._travel.clear()
+        self._lost_map: LocalMap | None = None       # the map a re-initialisation replaced (`_merge_lost_map`)
+        self._merge_tries = 0                        # keyframes of the new map left to look for it
+        self._lost_keyframes: list[int] = []         # the lost map's keyframes it looks for, newest first
+        self._merge_candidate: float | None = None   # the scale the last keyframe found it at (None: not found)
 
     @property
     def _speed(self) -> float | None:
@@ -367,6 +371,8 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep, FlowFollowing):
         self.last_observations = (frame.pixels, outcome.landmark)
         detected = int(np.count_nonzero(outcome.landmark[:detections] >= 0))
         if self._needs_keyframe(index, result.num_landmarks, detected) or status == RELOCALISED:
+            if self._lost_map is not None and status == TRACKING:
+                self._merge_lost_map(index, frame, outcome.landmark, result)
             self._insert_keyframe(index, frame, outcome.landmark, result)
             result.keyframe = True
         else:
