@@ -105,7 +105,6 @@ class VOConfig:
     merge_keyframes: int = 0
     merge_min_pairs: int = 12
     merge_max_spread: float = 0.1
-    merge_abandoned: bool = True  # a map the travel check abandoned is looked for too (its keyframes before the check)
     # After a loss the motion model keeps predicting for this many frames since the last tracked one, and
     # tracking against the local map is tried before relocalisation: one bad frame (a noise burst in the
     # dark) does not throw away the map's prediction (0: relocalisation only).

@@ -98,8 +98,7 @@ class MapLifecycle:
         else:
             lost = self.map
             self._forget_map()
-            if self.config.merge_abandoned:
-                self._keep_lost_map(lost, before)  # its keyframes before the frames that judged it broken
+            self._keep_lost_map(lost, before)  # its keyframes before the frames that judged it broken
             self._speeds.extend(speeds)
             self._probation.end()
             result.status, result.tracked_by, result.map_dropped = LOST, None, True

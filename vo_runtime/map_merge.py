@@ -68,8 +68,8 @@ def find_in_lost_map(lost: LocalMap, keyframes: list[int], points: np.ndarray, d
     front of both cameras, with depth ratios that agree to ``max_spread``. One search over all the keyframes'
     landmarks, not one a keyframe: in the dark each keyframe alone keeps too few (ORB: 4-9 such pairs).
     """
-    ids = np.unique(np.concatenate([lost.keyframes[number].landmark_ids() for number in keyframes] or [[]]))
-    ids = ids[lost.alive[ids.astype(np.int64)]].astype(np.int64)
+    ids = np.unique(np.concatenate([np.zeros(0, np.int64)] + [lost.keyframes[n].landmark_ids() for n in keyframes]))
+    ids = ids[lost.alive[ids]]
     if len(ids) < min_pairs:
         return None
     matches = match_mutual_nn(lost.descriptors[ids], descriptors, max_distance, ratio)
