@@ -315,6 +315,7 @@ class MonoVO(FrameIntake, MapLifecycle, KeyframeUpkeep, FlowFollowing):
                                 float(np.degrees(cfg.mapping.pose_min_parallax_px / self._focal)),
                                 cfg.mapping.pose_min_found, check_speed=self._speed if cfg.pose_check else None,
                                 check_jump=cfg.pose_check_jump, check_share=cfg.pose_check_share,
+                                check_floor=cfg.pose_check_floor,
                                 landmark_variance=cfg.landmark_variance, image_rotation_deg=cfg.image_rotation_deg)
 
     def _relocalise(self, frame: FrameData):

@@ -104,7 +104,7 @@ def ransac_pose(world: np.ndarray, image: np.ndarray, threshold: float, min_inli
 
 def second_opinion(world: np.ndarray, image: np.ndarray, start_cw: np.ndarray, fit: tuple[np.ndarray, np.ndarray],
                    threshold: float, min_inliers: int, speed: float, max_jump: float,
-                   min_share: float) -> tuple[np.ndarray, np.ndarray]:
+                   min_share: float, floor_share: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """``fit`` (a pose refined from ``start_cw``, the motion model's prediction), or the pose of PnP RANSAC on every
     match when ``fit`` shows both signs of a refinement that slid into the wrong basin and RANSAC explains more.
 
@@ -115,11 +115,11 @@ def second_opinion(world: np.ndarray, image: np.ndarray, start_cw: np.ndarray, f
     keyframes made from it broke the map (0.515 m ATE). RANSAC finds a pose explaining 50. Its pose is refined on
     every match: refined on the proven landmarks alone (tracking's rule) it slid back to the wrong basin.
     """
-    jump = float(np.linalg.norm(camera_centre(fit[0]) - camera_centre(start_cw)))
-    if jump <= max_jump * speed:
-        return fit
     explained = int(np.count_nonzero(reprojection_errors(world, image, *rvec_from_pose(fit[0])) < threshold))
     if explained >= min_share * len(world):
+        return fit
+    jump = float(np.linalg.norm(camera_centre(fit[0]) - camera_centre(start_cw)))
+    if jump <= max_jump * speed and explained >= floor_share * len(world):
         return fit
     other = ransac_pose(world, image, threshold, min_inliers)
     if other is None or np.count_nonzero(other[1]) <= explained:

@@ -73,6 +73,7 @@ class TrackingSettings:
     check_speed: float | None = None
     check_jump: float = 1.0
     check_share: float = 0.5
+    check_floor: float = 0.0  # ... and one explaining fewer than this share gets it however far it moved
     # A landmark's own position error, as a share of a keypoint's variance: seen from n keyframes it adds
     # landmark_variance / (n - 1) to its match's variance in a weighted pose fit (0: landmarks exact).
     landmark_variance: float = 0.0
@@ -148,7 +149,7 @@ def _fit_pose(local_map: LocalMap, visible: np.ndarray, pairs: np.ndarray, pose_
         fit = ransac_pose(world[use], image[use], threshold, settings.min_inliers)
     elif fit is not None and settings.check_speed is not None:
         fit = second_opinion(world, image, pose_cw, fit, threshold, settings.min_inliers, settings.check_speed,
-                             settings.check_jump, settings.check_share)
+                             settings.check_jump, settings.check_share, settings.check_floor)
     if fit is None:
         return None
     pose = fit[0]
