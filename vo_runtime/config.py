@@ -125,7 +125,7 @@ class VOConfig:
     pose_check_share: float = 0.5
     # ... and one explaining fewer than pose_check_floor of its matches however little it moved: TUM's worst
     # dark draw (5 of 12) refined frame 7 to 24 of 266 matches with a step 2.5x the true one, two keyframes made
-    # from it halved the map's scale (0.032 m); RANSAC explains 84 (0.012 m). Fires on no KITTI or EuRoC run.
+    # from it halved the map's scale (0.032 m); RANSAC explains 84 (0.012 m). No KITTI or drone clip run changes.
     pose_check_floor: float = 0.2
     # The travel check (`travel_check.py`): every tracked frame's direction of travel since the tracked frame
     # travel_check_gap frames back is compared with an essential matrix fitted to the landmarks both saw;
