@@ -106,7 +106,8 @@ def second_opinion(world: np.ndarray, image: np.ndarray, start_cw: np.ndarray, f
                    threshold: float, min_inliers: int, speed: float, max_jump: float,
                    min_share: float, floor_share: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """``fit`` (a pose refined from ``start_cw``, the motion model's prediction), or the pose of PnP RANSAC on every
-    match when ``fit`` shows both signs of a refinement that slid into the wrong basin and RANSAC explains more.
+    match when ``fit`` shows both signs of a refinement that slid into the wrong basin and RANSAC explains more;
+    or when ``fit`` explains fewer than ``floor_share`` of the matches, wherever it lies (0: never so).
 
     The signs: the camera centre jumped more than ``max_jump`` x ``speed`` (world units per frame) from the
     start, and fewer than ``min_share`` of the matches lie within ``threshold`` of their landmarks' projections.
