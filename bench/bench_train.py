@@ -2,8 +2,8 @@
 
     before: paper recipe (CE + hinge), gather deformable sampler, float32, every sample re-read, decoded
             and SHA-256-hashed from disk (as `toolkit.training.pairs` did)
-    after:  distill recipe (CE + teacher descriptors + InfoNCE), grid_sample sampler, bfloat16 autocast,
-            images decoded once
+    after:  distill recipe (CE + teacher descriptors + InfoNCE), grid_sample sampler, bfloat16 autocast where the
+            CPU computes bfloat16 natively (float32 elsewhere, as `toolkit train` does), images decoded once
 
 Both train FeatureNet (default config) at the same size and batch on real photos labelled here by
 alike-n (keypoints and descriptors, ~1 s). Steps alternate between the two in rounds, so machine noise
@@ -34,6 +34,7 @@ from toolkit.cmd_label import label_folder  # noqa: E402
 from toolkit.sizes import parse_size  # noqa: E402
 from toolkit.training.adaptation import AdaptationConfig  # noqa: E402
 from toolkit.training.augment import AugmentConfig  # noqa: E402
+from toolkit.training.cpu_precision import cpu_computes_bf16  # noqa: E402
 from toolkit.training.distill_losses import DescriptorProjection, DistillLossConfig, distill_loss  # noqa: E402
 from toolkit.training.distill_pairs import DistillPairs, MultiScaleConfig  # noqa: E402
 from toolkit.training.homographies import HomographyConfig  # noqa: E402
@@ -104,11 +105,12 @@ def main() -> None:
             "torch", False, args.batch,
         )
         scales = MultiScaleConfig(sizes=[list(size)])
+        bf16 = cpu_computes_bf16()  # as the trainer decides
         after = Variant(
-            "after: distill, grid_sample, bf16, decoded once",
+            f"after: distill, grid_sample, {'bf16' if bf16 else 'fp32 (no native bf16)'}, decoded once",
             DistillPairs(records, store, scales, HomographyConfig(), augment, 0, args.batch),
             lambda a, b, batch, p: distill_loss(a, b, batch, p, DistillLossConfig()),
-            "grid_sample", True, args.batch,
+            "grid_sample", bf16, args.batch,
         )
         variants = [before, after]
         for variant in variants:  # warm-up: allocator, oneDNN kernels

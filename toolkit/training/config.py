@@ -38,7 +38,9 @@ class TrainConfig:
     warmup_steps: int = 200
     lr_final_fraction: float = 0.05
     threads: int = 0  # torch CPU threads; 0 leaves torch's default (set it: 2 threads on a busy 2-core box are ~4x slower)
-    cpu_bf16: bool = True  # bfloat16 autocast on CPU (1.4-1.7x on AVX512-BF16 CPUs)
+    # bfloat16 autocast on a CPU with native bfloat16 (AVX512_BF16 / AMX: 1.4-1.7x); other CPUs train in float32,
+    # where bfloat16 is emulated and 4.6x slower (`toolkit.training.cpu_precision`)
+    cpu_bf16: bool = True
     train_sampler: str = "grid_sample"  # deformable sampler while training: "grid_sample" (fast) or "torch" (gather)
     seed: int = 0
     checkpoint_every: int = 500

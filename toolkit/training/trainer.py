@@ -1,6 +1,6 @@
 """Training loop: warped pairs -> the recipe's losses -> Adam with a warm-up + cosine schedule; atomic
 checkpoints, exact resume, validation, DistributedDataParallel under torchrun (NCCL on GPUs, gloo on CPUs),
-float16 autocast on CUDA, bfloat16 autocast on CPU.
+float16 autocast on CUDA, bfloat16 autocast on a CPU that computes bfloat16 natively (`cpu_precision`).
 
 Recipes (``TrainConfig.recipe``): ``distill`` (teacher keypoints + descriptor distillation + InfoNCE,
 multi-scale views; `toolkit.training.distill_losses`) and ``paper`` (SuperPoint's CE + hinge).
@@ -28,6 +28,7 @@ from torch.nn.parallel import DistributedDataParallel
 
 from models.checkpoint import build_model, save_checkpoint
 from models.featurenet import widen_pixel_window
+from toolkit.training.cpu_precision import cpu_computes_bf16
 from models.deform import set_deform_strategy
 from models.keypoints import model_refinement
 from toolkit.errors import ToolkitError
@@ -329,7 +330,7 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
 
     if use_amp:
         autocast = lambda: torch.autocast("cuda", dtype=torch.float16)  # noqa: E731
-    elif device.type == "cpu" and config.cpu_bf16:
+    elif device.type == "cpu" and config.cpu_bf16 and cpu_computes_bf16():
         autocast = lambda: torch.autocast("cpu", dtype=torch.bfloat16)  # noqa: E731
     else:
         autocast = contextlib.nullcontext
