@@ -34,3 +34,12 @@ def bad_input_assets(tmp_path_factory):
     assert main(["export", "--target", "x86-cpu", "--checkpoint", str(checkpoint), "--input-size", "64x64",
                  "-o", str(artefact)]) == 0
     return Assets(root, checkpoint, artefact)
+
+
+# Test files that take minutes run first, so that with two workers (pytest-xdist, `-n 2` in pyproject.toml) they
+# overlap the many short ones instead of finishing alone at the end.
+SLOW_FIRST = ("test_readme_tour.py",)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    items.sort(key=lambda item: item.path.name not in SLOW_FIRST)  # stable: every other order is kept
