@@ -128,6 +128,11 @@ def test_short_run_loss_falls_and_writes_a_run_folder(labelled, tmp_path: Path) 
     assert sum(curve[-5:]) / 5 < 0.8 * sum(curve[:5]) / 5
     for name in ("config.json", "train_state.pt", "last.safetensors", "best.safetensors", "loss.png", "val.csv"):
         assert (run / name).is_file(), name
+    # the run says what cpu_bf16 came to on this CPU: bfloat16 only where it computes it natively
+    from toolkit.training.cpu_precision import cpu_computes_bf16
+
+    precision = json.loads((run / "config.json").read_text())["cpu_precision"]
+    assert precision == ("bfloat16" if cpu_computes_bf16() else "float32")
     model, info = load_checkpoint(run / "last.safetensors")
     assert info.arch == "featurenet" and info.metadata["step"] == 30 and info.config["descriptor_dim"] == 64
     with (run / "val.csv").open() as file:

@@ -7,7 +7,7 @@ multi-scale views; `toolkit.training.distill_losses`) and ``paper`` (SuperPoint'
 
 Run folder::
 
-    RUN/config.json          the full TrainConfig plus the image/label folders
+    RUN/config.json          the full TrainConfig plus the image/label folders (and, on a CPU, its precision)
     RUN/train_state.pt       model + projection + optimizer + scaler + RNG + step (the resume point)
     RUN/last.safetensors     latest weights; RUN/best.safetensors highest validation matching score
     RUN/log.csv, RUN/val.csv per-step losses and validation metrics; RUN/loss.png, RUN/val.png their curves
@@ -301,6 +301,8 @@ def _train(config, store, records, unreadable, images, labels, run, resume, rank
         run.mkdir(parents=True, exist_ok=True)
         if not resume:
             header = {"train": asdict(config), "images": str(images), "labels": str(labels), "teacher": store.teacher}
+            if device.type == "cpu":  # what cpu_bf16 came to on this machine
+                header["cpu_precision"] = "bfloat16" if config.cpu_bf16 and cpu_computes_bf16() else "float32"
             write_atomic(run / "config.json", json.dumps(header, indent=2).encode())
         truncate_csv(run / "log.csv", LOG_FIELDS, step)
         truncate_csv(run / "val.csv", VAL_FIELDS, step)
