@@ -72,7 +72,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Train the keypoint network without hand labels: keypoint cross-entropy against the "
         "teacher's keypoints on both views of a random homographic pair, plus (distill, the default) the "
         "teacher's descriptors and InfoNCE across views at several input sizes, or (paper) the descriptor "
-        "hinge loss. One GPU, several under torchrun (DDP), or a CPU (gloo; bfloat16 autocast).",
+        "hinge loss. One GPU, several under torchrun (DDP), or a CPU (gloo; bfloat16 autocast where the CPU "
+        "has native bfloat16, else float32).",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
