@@ -24,18 +24,18 @@ def test_pose_and_point_jacobians_match_finite_differences() -> None:
     gain = rng.uniform(300, 500, len(frame))  # a per-observation gain, as obs_scale makes it
     cam = _project(poses, points, frame, point)
     j_pose, j_point = _jacobians(cam, np.stack(poses)[frame, :3, :3], gain)
-    base = _residuals(poses, points, frame, point, xy, gain)
+    base, _ = _residuals(poses, points, frame, point, xy, gain)
     step = 1e-6
     for axis in range(6):
         delta = np.zeros(6)
         delta[axis] = step
         moved = [left_increment(p, delta) for p in poses]
-        numeric = (_residuals(moved, points, frame, point, xy, gain) - base) / step
+        numeric = (_residuals(moved, points, frame, point, xy, gain)[0] - base) / step
         np.testing.assert_allclose(j_pose[:, :, axis], numeric, rtol=1e-4, atol=1e-3)
     for axis in range(3):
         moved = points.copy()
         moved[:, axis] += step
-        numeric = (_residuals(poses, moved, frame, point, xy, gain) - base) / step
+        numeric = (_residuals(poses, moved, frame, point, xy, gain)[0] - base) / step
         np.testing.assert_allclose(j_point[:, :, axis], numeric, rtol=1e-4, atol=1e-3)
 
 

@@ -54,13 +54,13 @@ def _accumulate(summing: sparse.csr_matrix, values: np.ndarray) -> np.ndarray:
     return (summing @ values.reshape(len(values), -1)).reshape((summing.shape[0],) + values.shape[1:])
 
 
-def _residuals(poses, points, frame, point, xy, gain) -> np.ndarray:
+def _residuals(poses, points, frame, point, xy, gain) -> tuple[np.ndarray, np.ndarray]:
     """[K, 2]: normalised reprojection errors times ``gain`` [K] (the focal length, or it over each observation's
-    expected error)."""
+    expected error); and the camera points [K, 3] they came from, which the next iteration's Jacobians need."""
     cam = _project(poses, points, frame, point)
     with np.errstate(divide="ignore", invalid="ignore"):
         res = gain[:, None] * (cam[:, :2] / cam[:, 2:3] - xy)
-    return np.where(np.isfinite(res), res, 1e6)
+    return np.where(np.isfinite(res), res, 1e6), cam
 
 
 def _cost(res: np.ndarray, huber_px: float) -> float:
@@ -105,7 +105,7 @@ def schur_bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.nda
     n_free, n_points = len(poses) - n_fixed, len(points)
     free = obs_frame >= n_fixed
     slot = np.where(free, obs_frame - n_fixed, 0)
-    res = _residuals(poses, points, obs_frame, obs_point, obs_xy, gain)
+    res, cam = _residuals(poses, points, obs_frame, obs_point, obs_xy, gain)
     start_cost = float(np.sum(res ** 2))
     cost = _cost(res, huber_px)
     damping = 1e-3
@@ -114,7 +114,7 @@ def schur_bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.nda
     by_pose_point = _summing_matrix(obs_point[free] * n_free + slot[free], n_points * n_free)
     for _ in range(iterations):
         rotations = np.stack([p[:3, :3] for p in poses])[obs_frame]
-        j_pose, j_point = _jacobians(_project(poses, points, obs_frame, obs_point), rotations, gain)
+        j_pose, j_point = _jacobians(cam, rotations, gain)
         norm = np.linalg.norm(res, axis=1)
         weight = np.where(norm <= huber_px, 1.0, huber_px / np.maximum(norm, 1e-12))   # Huber IRLS
         wj_pose = j_pose * weight[:, None, None]
@@ -145,10 +145,10 @@ def schur_bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.nda
             d_point = (h_ll_inv @ (b_l - (h_flat.T @ d_pose.ravel()).reshape(n_points, 3))[:, :, None])[:, :, 0]
             trial_poses = poses[:n_fixed] + [left_increment(p, d) for p, d in zip(poses[n_fixed:], d_pose)]
             trial_points = points + d_point
-            trial_res = _residuals(trial_poses, trial_points, obs_frame, obs_point, obs_xy, gain)
+            trial_res, trial_cam = _residuals(trial_poses, trial_points, obs_frame, obs_point, obs_xy, gain)
             trial_cost = _cost(trial_res, huber_px)
             if trial_cost < cost:
-                poses, points, res, improved = trial_poses, trial_points, trial_res, True
+                poses, points, res, cam, improved = trial_poses, trial_points, trial_res, trial_cam, True
                 converged = cost - trial_cost < min_decrease * cost
                 cost = trial_cost
                 damping = max(damping / 10, 1e-7)
