@@ -14,7 +14,7 @@ from pathlib import Path
 import onnx
 import torch
 
-from export.channel_padding import pad_pooled_channels
+from export.block_graphs import block_graphs
 from export.half import to_fp16
 from export.checks import check_against_profile, require_non_negative_gathers
 from export.graphs import DENSE_OUTPUTS, KEYPOINT_OUTPUTS, DenseGraph, KeypointGraph
@@ -131,18 +131,10 @@ def _export_into(claim: OutputClaim, options: ExportOptions, profile: TargetProf
     dense_export = export_onnx(dense_module, dummy, profile.max_opset, DENSE_OUTPUTS)
     deployed = dense_export if options.dense else keypoint_export
     check_against_profile(deployed.model, profile)
-    # The CPU's channel blocks (the same values, fewer layout conversions); the parity run below checks them.
-    keypoint_fp32, padded = pad_pooled_channels(keypoint_export.model, profile.channel_multiple)
-    dense_fp32, dense_padded = pad_pooled_channels(dense_export.model, profile.channel_multiple)
-    padded = dense_padded if options.dense else padded
-    if padded:
-        log("padded with zero channels for the CPU's blocks: " + ", ".join(
-            f"{chain.producer} {chain.channels} -> {chain.padded}" for chain in padded))
-
     # On the TX2, FP16 is a TensorRT build flag on the FP32 graph; on the CPU the file itself becomes FP16.
     onnx_fp16 = precision == "fp16" and profile.runtime.startswith("onnxruntime")
-    keypoint_model = to_fp16(keypoint_fp32) if onnx_fp16 else keypoint_fp32
-    dense_model = to_fp16(dense_fp32) if onnx_fp16 else dense_fp32
+    finish = to_fp16 if onnx_fp16 else _unchanged
+    keypoint_model, dense_model = finish(keypoint_export.model), finish(dense_export.model)
     final_model = dense_model if options.dense else keypoint_model
     graph_label = f"the {'fp16' if onnx_fp16 else 'fp32'} {'dense' if options.dense else 'keypoint'} graph"
     checker = check_before_writing(final_model, graph_label)  # before the parity run: it takes milliseconds
@@ -159,8 +151,17 @@ def _export_into(claim: OutputClaim, options: ExportOptions, profile: TargetProf
             f"parity failed: only {parity.keypoints_identical:.1%} of keypoints identical to PyTorch (need {required:.0%})"
         )
 
+    # The CPU's channel blocks: the same values, fewer layout conversions, checked against the graph above.
+    blocks = block_graphs(deployed.model, final_model, profile.channel_blocks, images, finish)
+    for graph in blocks:
+        check_before_writing(graph.model, f"{graph_label} padded for {graph.block}-channel blocks")
+        log(f"padded for onnxruntime's {graph.block}-channel blocks ({graph.file_name}): " + ", ".join(
+            f"{chain.producer} {chain.channels} -> {chain.padded}" for chain in graph.chains))
+
     with claim.writing() as staging:
         onnx.save(final_model, str(staging / MODEL_NAME))
+        for graph in blocks:
+            onnx.save(graph.model, str(staging / graph.file_name))
         manifest = {
             "format": ARTEFACT_FORMAT,
             "target": profile.name,
@@ -177,8 +178,10 @@ def _export_into(claim: OutputClaim, options: ExportOptions, profile: TargetProf
                      "nodes_before_simplify": deployed.nodes_before_simplify,
                      "nodes_after_simplify": deployed.nodes_after_simplify, "simplifier": deployed.simplifier,
                      "op_types": op_histogram(final_model), "checker": checker,
-                     "channel_padding": {"multiple": profile.channel_multiple,
-                                         "chains": [chain.to_dict() for chain in padded]}},
+                     "block_graphs": [{"block": graph.block, "file": graph.file_name,
+                                       "sha256": sha256_file(staging / graph.file_name),
+                                       "chains": [chain.to_dict() for chain in graph.chains],
+                                       "max_abs_diff": graph.max_abs_diff} for graph in blocks]},
             "input": {"name": "image", "shape": [1, 1, height, width], "dtype": "float32", "layout": "NCHW",
                       "color": "gray", "normalisation": {"scale": 1.0 / 255.0, "offset": 0.0},
                       "resize": "cv2.INTER_AREA to the input shape", "resize_policy": "resize"},
@@ -193,6 +196,10 @@ def _export_into(claim: OutputClaim, options: ExportOptions, profile: TargetProf
         }
         (staging / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
         (staging / "README.md").write_text(artefact_readme(manifest, profile))
+
+
+def _unchanged(model: onnx.ModelProto) -> onnx.ModelProto:
+    return model
 
 
 def _describe_outputs(dense: bool, k: int, height: int, width: int, net: torch.nn.Module) -> dict:

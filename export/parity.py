@@ -111,7 +111,7 @@ def prepare_parity_image(path: Path, height: int, width: int) -> np.ndarray:
     return resize_and_scale(gray, height, width)
 
 
-def _session(model: onnx.ModelProto):
+def cpu_session(model: onnx.ModelProto):
     import onnxruntime as ort
 
     options = ort.SessionOptions()
@@ -135,7 +135,7 @@ def measure_parity(
     names: list[str],
 ) -> ParityReport:
     """Run PyTorch and onnxruntime side by side on ``images`` and compare heads and keypoints."""
-    keypoint_session, dense_session = _session(keypoint_model), _session(dense_model)
+    keypoint_session, dense_session = cpu_session(keypoint_model), cpu_session(dense_model)
     found = total = 0
     valid_torch: list[int] = []
     valid_onnx: list[int] = []

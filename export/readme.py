@@ -46,7 +46,17 @@ features = extract(gray_or_bgr_image)   # keypoints [N,2], scores [N], descripto
 
 Check that this machine's onnxruntime reproduces the parity run (the inputs and outputs in reference.npz):
 `python -m vo_runtime verify path/to/this/directory`.
-"""
+{_block_lines(manifest)}"""
+
+
+def _block_lines(manifest: dict) -> str:
+    graphs = manifest["onnx"].get("block_graphs", [])
+    if not graphs:
+        return ""
+    lines = [f"- `{graph['file']}`: padded with zero channels for {graph['block']}-channel blocks "
+             f"(outputs within {graph['max_abs_diff']:.1e} of model.onnx)" for graph in graphs]
+    return ("\nThe same network padded for onnxruntime's channel blocks (16 with AVX-512, 8 with AVX2); "
+            "`FeatureExtractor` loads the one for its CPU:\n" + "\n".join(lines) + "\n")
 
 
 def artefact_readme(manifest: dict, profile: TargetProfile) -> str:

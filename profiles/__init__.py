@@ -36,9 +36,9 @@ class TargetProfile:
     op_constraints: dict[str, str] = field(default_factory=dict)
     hardware: dict[str, Any] = field(default_factory=dict)
     source: str = ""
-    # Convolution widths around a max-pool padded with zero channels to a multiple of this
-    # (`export.channel_padding`); 1: none.
-    channel_multiple: int = 1
+    # onnxruntime channel blocks (NCHWc) that get a graph of their own, padded with zero channels around its
+    # max-pools to a multiple of the block (`export.block_graphs`); empty: the traced graph only.
+    channel_blocks: tuple[int, ...] = ()
 
     @property
     def elu_form(self) -> str:
@@ -80,6 +80,16 @@ def _read_table(path: Path) -> dict[str, Any]:
         raise ProfileError(f"{path} is not valid TOML ({exc})") from None
 
 
+def _channel_blocks(fields: Fields) -> tuple[int, ...]:
+    """``channel_blocks``; a profile of the releases before it names one block as ``channel_multiple``."""
+    if "channel_blocks" in fields.table:
+        return tuple(block for block in fields.wholes("channel_blocks", 1, 256) if block > 1)
+    if "channel_multiple" in fields.table:
+        block = fields.whole("channel_multiple", 1, 256)
+        return (block,) if block > 1 else ()
+    return ()
+
+
 def load_profile(name_or_path: str | Path) -> TargetProfile:
     """Load a shipped profile by name or a TOML file by path. Every field is checked here, once (`profiles.fields`):
     a missing or invalid one raises `ProfileError` naming it."""
@@ -108,5 +118,5 @@ def load_profile(name_or_path: str | Path) -> TargetProfile:
         op_constraints=dict(constraints),
         hardware=dict(hardware),
         source=str(path),
-        channel_multiple=fields.whole("channel_multiple", 1, 256) if "channel_multiple" in fields.table else 1,
+        channel_blocks=_channel_blocks(fields),
     )

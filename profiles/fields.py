@@ -46,6 +46,13 @@ class Fields:
             raise self.error(dotted, f"a whole number from {low} to {high}", value)
         return value
 
+    def wholes(self, dotted: str, low: int, high: int) -> tuple[int, ...]:
+        value = self.get(dotted)
+        if not isinstance(value, list) or not all(isinstance(v, int) and not isinstance(v, bool) and low <= v <= high
+                                                  for v in value):
+            raise self.error(dotted, f"a list of whole numbers from {low} to {high}", value)
+        return tuple(sorted(set(value)))
+
     def texts(self, dotted: str, choices: tuple[str, ...] | None = None, empty: bool = True) -> tuple[str, ...]:
         value = self.get(dotted)
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value) or (not empty and not value):

@@ -13,6 +13,8 @@ An artefact is a directory written by `toolkit export`:
   ``onnx.sha256`` of model.onnx, source checkpoint hash, toolkit version and parity figures.
   ``onnx.checker`` records that model.onnx passed ``onnx.checker.check_model(full_check=True)`` (which
   includes topological node order) before it was written; artefacts older than that record lack the field.
+  ``onnx.block_graphs`` (x86 CPU artefacts): [{block, file, sha256, chains}], the same graph padded with zero
+  channels for onnxruntime's channel blocks; `FeatureExtractor` runs the one for this CPU (`vo_runtime.cpu_blocks`).
   The runtime does not re-run the check: it needs the onnx package, which is no runtime dependency.
 """
 from __future__ import annotations
@@ -77,30 +79,44 @@ def _check_fields(manifest: dict[str, Any], path: Path) -> None:
     shape = entry.get("shape") if isinstance(entry, dict) else None
     if not (isinstance(shape, list) and len(shape) == 4 and all(isinstance(v, int) and v > 0 for v in shape)):
         raise ArtefactError(f"{path} has no valid input.shape (four positive integers): re-export the artefact")
-    name = onnx_entry.setdefault("file", MODEL_NAME)
+    _check_file_name(onnx_entry.setdefault("file", MODEL_NAME), "onnx.file", path)
+    blocks = onnx_entry.setdefault("block_graphs", [])
+    if not isinstance(blocks, list):
+        raise ArtefactError(f"{path}: onnx.block_graphs must be a list: re-export the artefact")
+    for entry in blocks:
+        if not (isinstance(entry, dict) and isinstance(entry.get("block"), int) and entry["block"] > 1
+                and isinstance(entry.get("sha256"), str) and re.fullmatch(r"[0-9a-f]{64}", entry["sha256"])):
+            raise ArtefactError(f"{path}: each onnx.block_graphs entry needs a block (> 1), a file and a sha256: "
+                                "re-export the artefact")
+        _check_file_name(entry.get("file"), "onnx.block_graphs file", path)
+
+
+def _check_file_name(name: object, field: str, path: Path) -> None:
     # A name, never a path: a manifest pointing at ../../x or /x would load a file outside the artefact.
     if not (isinstance(name, str) and name not in ("", ".", "..") and Path(name).name == name and "\\" not in name):
-        raise ArtefactError(f"{path}: onnx.file must name a file inside the artefact, got {name!r}")
+        raise ArtefactError(f"{path}: {field} must name a file inside the artefact, got {name!r}")
 
 
 def verify_artefact(artefact_dir: str | Path) -> dict[str, Any]:
-    """Load the manifest and check that model.onnx matches its recorded sha256.
+    """Load the manifest and check that model.onnx (and each graph of ``onnx.block_graphs``, the same network
+    padded for a CPU's channel blocks: `vo_runtime.cpu_blocks`) matches its recorded sha256.
 
     Returns the manifest. Raises `ArtefactError` naming what is wrong.
     """
     directory = artefact_path(artefact_dir)
     manifest = load_manifest(directory)
     _check_fields(manifest, directory / MANIFEST_NAME)
-    model_path = directory / manifest["onnx"]["file"]
-    if not model_path.is_file():
-        raise ArtefactError(f"{directory}: {model_path.name} is missing")
-    expected = manifest["onnx"]["sha256"]
-    actual = sha256_file(model_path)
-    if expected != actual:
-        raise ArtefactError(
-            f"{model_path} fails its manifest checksum (sha256 {actual[:12]}..., manifest says "
-            f"{expected[:12]}...): the file was changed or truncated after export"
-        )
+    graphs = [manifest["onnx"]] + manifest["onnx"]["block_graphs"]
+    for entry in graphs:
+        model_path = directory / entry["file"]
+        if not model_path.is_file():
+            raise ArtefactError(f"{directory}: {model_path.name} is missing")
+        expected, actual = entry["sha256"], sha256_file(model_path)
+        if expected != actual:
+            raise ArtefactError(
+                f"{model_path} fails its manifest checksum (sha256 {actual[:12]}..., manifest says "
+                f"{expected[:12]}...): the file was changed or truncated after export"
+            )
     return manifest
 
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from vo_runtime.artefact import verify_artefact
 from vo_runtime.clitools import command_parser, run_guarded
+from vo_runtime.cpu_blocks import graph_for_this_cpu
 from vo_runtime.errors import VORuntimeError
 from vo_runtime.references import (
     MATCH_RADIUS_PX, Agreement, Runner, compare_dense, compare_keypoints, load_references, network_input, onnx_runner,
@@ -135,18 +136,20 @@ def run(args: argparse.Namespace) -> int:
     manifest = verify_artefact(args.artefact)
     cases = load_references(args.artefact, manifest)
     dense = manifest.get("mode") != "keypoints"
-    runner, runs_on = _runner(args, args.artefact / manifest["onnx"]["file"])
+    graph = graph_for_this_cpu(manifest)  # the one FeatureExtractor runs on this CPU
+    runner, runs_on = _runner(args, args.artefact / graph)
     scale = float(manifest["input"]["normalisation"]["scale"])
     compare = compare_dense if dense else compare_keypoints
     agreements = [compare(case, runner(network_input(case.image, scale))) for case in cases]
-    summary = {"artefact": str(args.artefact), "runs_on": runs_on, "written_by": manifest.get("toolkit_version"),
+    summary = {"artefact": str(args.artefact), "graph": graph, "runs_on": runs_on,
+               "written_by": manifest.get("toolkit_version"),
                **summarise(agreements, dense)}
     problem = failure(summary, tolerance, dense)
     summary["passed"] = problem is None
     if args.json:
         print(json.dumps(summary))
     else:
-        print(f"verify {args.artefact} on {runs_on}, against the outputs of its parity run "
+        print(f"verify {args.artefact} ({graph}) on {runs_on}, against the outputs of its parity run "
               f"({manifest['reference'].get('outputs_from', '?')}, edgefeat {summary['written_by']}):")
         print("\n".join(_image_line(agreement, dense) for agreement in agreements))
     if problem:

@@ -225,7 +225,9 @@ def _quantise_into(claim: OutputClaim, options: QuantiseOptions, source: Path, m
     with claim.writing() as staging:
         onnx.save(quantised, str(staging / MODEL_NAME))
         new_manifest["onnx"] = {**manifest["onnx"], "file": MODEL_NAME, "sha256": sha256_file(staging / MODEL_NAME),
-                                "op_types": op_histogram(quantised), "checker": checker}
+                                "op_types": op_histogram(quantised), "checker": checker,
+                                # the source's graphs padded for channel blocks are float: this artefact is one graph
+                                "block_graphs": []}
         # this graph's own outputs on the parity images, for `python -m vo_runtime verify`
         new_manifest["reference"] = write_cpu_references(staging, MODEL_NAME, reference_images(default_parity_paths(), height, width),
                                                          float(manifest["input"]["normalisation"]["scale"]), manifest["mode"])
