@@ -29,9 +29,12 @@ def bearings(points: np.ndarray) -> np.ndarray:
 
 
 def fit_rotation(rays_a: np.ndarray, rays_b: np.ndarray) -> np.ndarray:
-    """Least-squares rotation R with ``rays_b ~ R rays_a`` (orthogonal Procrustes; rays [N, 3], N >= 2)."""
-    u, _, vt = np.linalg.svd(rays_b.T @ rays_a)
-    fix = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    """Least-squares rotation R with ``rays_b ~ R rays_a`` (orthogonal Procrustes; rays [N, 3], N >= 2); also
+    batched: rays [S, N, 3] -> rotations [S, 3, 3]."""
+    u, _, vt = np.linalg.svd(np.swapaxes(rays_b, -1, -2) @ rays_a)
+    fix = np.zeros(u.shape)
+    fix[..., 0, 0] = fix[..., 1, 1] = 1.0
+    fix[..., 2, 2] = np.sign(np.linalg.det(u @ vt))
     return u @ fix @ vt
 
 
@@ -57,13 +60,12 @@ def fit_rotation_ransac(pts_a: np.ndarray, pts_b: np.ndarray, threshold: float,
     if count < 2:
         raise ValueError("a rotation needs at least two tracks")
     rng = np.random.default_rng(seed)
-    best, best_inliers = np.eye(3), -1
-    for _ in range(RANSAC_SAMPLES):
-        pair = rng.choice(count, 2, replace=False)
-        rotation = fit_rotation(rays_a[pair], rays_b[pair])
-        inliers = int(np.count_nonzero(rotation_residuals(rotation, rays_a, rays_b) < threshold))
-        if inliers > best_inliers:
-            best, best_inliers = rotation, inliers
+    pairs = np.array([rng.choice(count, 2, replace=False) for _ in range(RANSAC_SAMPLES)])
+    # Every sample's rotation and inlier count at once (one sample at a time cost 10 ms a call at 500 tracks);
+    # the first sample with the most inliers wins, as in a sequential loop.
+    rotations = fit_rotation(rays_a[pairs], rays_b[pairs])
+    cosines = np.clip(np.sum((rays_a @ np.swapaxes(rotations, 1, 2)) * rays_b, axis=2), -1.0, 1.0)
+    best = rotations[int(np.argmax(np.count_nonzero(np.arccos(cosines) < threshold, axis=1)))]
     inliers = rotation_residuals(best, rays_a, rays_b) < threshold
     if np.count_nonzero(inliers) >= 2:
         best = fit_rotation(rays_a[inliers], rays_b[inliers])

@@ -43,10 +43,14 @@ def _inverse_3x3(matrices: np.ndarray) -> np.ndarray:
 def _summing_matrix(index: np.ndarray, size: int) -> sparse.csr_matrix:
     """[size, K] 0/1 matrix whose product with values [K, ...] sums them into ``size`` bins by ``index`` [K].
     Built once per adjustment; one sparse product per block replaces a bincount per matrix entry (3x
-    faster over an adjustment's 70 entries). Built as the transpose of a one-entry-per-row CSR matrix:
-    no coordinate sort."""
+    faster over an adjustment's 70 entries)."""
     count = len(index)
-    return sparse.csr_matrix((np.ones(count), index, np.arange(count + 1)), shape=(count, size)).T.tocsr()
+    # Row b lists the positions of bin b in increasing order, as the transpose converted to CSR would (the
+    # products then add in the same order), without building the transpose: a third of the time.
+    order = np.argsort(index, kind="stable")
+    starts = np.zeros(size + 1, np.int64)
+    np.cumsum(np.bincount(index, minlength=size), out=starts[1:])
+    return sparse.csr_matrix((np.ones(count), order, starts), shape=(size, count))
 
 
 def _accumulate(summing: sparse.csr_matrix, values: np.ndarray) -> np.ndarray:
@@ -131,7 +135,9 @@ def schur_bundle_adjust(poses_cw: list[np.ndarray], n_fixed: int, points: np.nda
         improved = converged = False
         while not improved and damping < 1e8:
             h_ll_inv = _inverse_3x3(h_ll + damping * (h_ll * EYE3) + 1e-9 * EYE3)
-            y_flat = (h_pl @ h_ll_inv[:, None]).transpose(1, 2, 0, 3).reshape(6 * n_free, 3 * n_points)
+            # One [6F, 3] x [3, 3] product per point (2.6x faster than one per point and pose, the same sums)
+            y_flat = (h_pl.reshape(n_points, 6 * n_free, 3) @ h_ll_inv).reshape(n_points, n_free, 6, 3)
+            y_flat = y_flat.transpose(1, 2, 0, 3).reshape(6 * n_free, 3 * n_points)
             reduced = np.zeros((n_free, 6, n_free, 6))
             for f in range(n_free):
                 reduced[f, :, f, :] = h_pp[f] + damping * (h_pp[f] * EYE6) + 1e-9 * EYE6
