@@ -3,7 +3,7 @@ against the graph as traced (`block_graphs`).
 
 `export.channel_padding` pads a chain around a max-pool to a multiple of one block. Which block onnxruntime
 uses depends on the CPU it runs on (16 with AVX-512F, 8 with AVX2: `vo_runtime.cpu_blocks`), and a graph padded for
-16 is slower where the block is 8 (the slim network at 480x752: 1.1 ms a frame on an AVX2 core). So the artefact
+16 is slower where the block is 8 (the slim network at 480x752: 0.8-1.1 ms a frame on an AVX2 core). So the artefact
 keeps the traced graph and adds a padded copy per block that has something to pad; the runtime picks one.
 """
 from __future__ import annotations

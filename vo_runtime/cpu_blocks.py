@@ -6,7 +6,7 @@ whose width is not a multiple of the block runs unblocked, with a layout convers
 `toolkit export --target x86-cpu` writes the graph as traced (``model.onnx``) plus one padded with zero channels
 for each wider block (``onnx.block_graphs`` in the manifest; `export.block_graphs`). Every graph gives the same
 outputs; only the time differs. The slim network at 480x752: padded to 32 channels it ran 1.3-1.8 ms faster a frame
-on an AVX-512 core and ~1.1 ms slower on an AVX2 core, where 24 channels already fill three blocks
+on an AVX-512 core and 0.8-1.1 ms slower on an AVX2 core, where 24 channels already fill three blocks
 (docs/vo_euroc.md, "One graph per channel block").
 """
 from __future__ import annotations
