@@ -29,15 +29,10 @@ def heatmap_from_logits(logits: torch.Tensor) -> torch.Tensor:
 
 
 def max_pool_nms(heatmap: torch.Tensor, radius: int) -> torch.Tensor:
-    """Keep local maxima in a (2r+1)^2 window, zero elsewhere. [B, 1, H, W] -> [B, 1, H, W].
-
-    The window's maximum is taken as a row maximum of column maxima: the same values exactly, and in onnxruntime
-    (one thread, 480x752, r = 4) 0.83 against 1.21 ms for the square pool."""
+    """Keep local maxima in a (2r+1)^2 window, zero elsewhere. [B, 1, H, W] -> [B, 1, H, W]."""
     if radius <= 0:
         return heatmap
-    size = 2 * radius + 1
-    columns = F.max_pool2d(heatmap, kernel_size=(size, 1), stride=1, padding=(radius, 0))
-    pooled = F.max_pool2d(columns, kernel_size=(1, size), stride=1, padding=(0, radius))
+    pooled = F.max_pool2d(heatmap, kernel_size=2 * radius + 1, stride=1, padding=radius)
     return heatmap * (heatmap == pooled).to(heatmap.dtype)
 
 
