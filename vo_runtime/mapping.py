@@ -13,7 +13,9 @@
 """
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass
+from itertools import chain
 from typing import Callable
 
 import numpy as np
@@ -301,11 +303,10 @@ def local_bundle_adjustment(local_map: LocalMap, number: int, config: MappingCon
     if len(landmarks) > config.ba_max_points:  # bound the cost: keep the most observed landmarks
         counts = local_map.observation_counts(landmarks)
         landmarks = landmarks[np.argsort(-counts, kind="stable")[: config.ba_max_points]]
-    observers: dict[int, int] = {}
-    for landmark in landmarks.tolist():
-        for k in local_map.observations[landmark]:
-            if k not in free:
-                observers[k] = observers.get(k, 0) + 1
+    # Keyframes outside the window that see its landmarks, counted in C; first-seen order kept for the ties below
+    observers = Counter(chain.from_iterable(map(local_map.observations.__getitem__, landmarks.tolist())))
+    for k in free:
+        observers.pop(k, None)
     fixed = sorted(observers, key=lambda k: (k >= 2, -observers[k]))[: config.ba_fixed_keyframes]
     if len(fixed) < 2:  # the gauge and the scale need two fixed views: fix the oldest free ones
         free.sort()
