@@ -101,6 +101,9 @@ class FeatureExtractor:
         providers: ``"auto"`` (default: the best available of TensorRT FP16, CUDA, CPU), or the ones to use,
             e.g. ``"cuda,cpu"`` or ``["cpu"]``; a requested provider that is missing raises `VORuntimeError`.
             ``self.providers`` lists those the session really runs on, best first.
+
+    ``self.graph`` names the graph file loaded: ``model.onnx``, or the copy padded for this CPU's onnxruntime
+    channel blocks where the artefact has one (`vo_runtime.cpu_blocks`; the same outputs).
     """
 
     def __init__(self, artefact: str | Path, threads: int = 1, resize_policy: str | None = None,
