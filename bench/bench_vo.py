@@ -40,7 +40,7 @@ sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
 from vo_runtime import FeatureExtractor, OrbExtractor, VisualOdometry  # noqa: E402
 from vo_runtime.artefact import default_artefact  # noqa: E402
-from vo_runtime.cpu_blocks import nchwc_block  # noqa: E402
+from vo_runtime.cpu_blocks import cpu_name, nchwc_block  # noqa: E402
 from vo_runtime.datasets import open_sequence  # noqa: E402
 from vo_runtime.odometry import TRACKED_STATES, VOConfig  # noqa: E402
 from vo_runtime.sequence import read_frames  # noqa: E402
@@ -73,19 +73,6 @@ def run(name: str, extractor, frames: list[np.ndarray], camera, stamps: list[flo
             "map_ms": float(np.mean([r.mapping_ms for r in results])),
             "keyframes": sum(r.keyframe for r in results),
             "tracked": sum(r.status in TRACKED_STATES for r in results), "frames": len(results)}
-
-
-def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
-    """The processor's name from /proc/cpuinfo (Linux), else what `platform` knows."""
-    import platform
-
-    try:
-        for line in cpuinfo.read_text(errors="replace").splitlines():
-            if line.split(":")[0].strip() == "model name":
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def main() -> int:
@@ -139,8 +126,8 @@ def main() -> int:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"{len(frames)} frames of {Path(args.sequence).name} at {size[0]}x{size[1]}, 1 thread, best of "
           f"{args.repeat}; load average {load:.1f} on {os.cpu_count()} CPUs; ms per frame")
-    # The CPU says which graph the default loaded and what speed to expect (AVX-512 cores ran it 10-15 % faster).
-    print(f"CPU: {cpu_model()}; onnxruntime channel block {nchwc_block()}; the default runs {default.graph}")
+    # Which CPU, and so which of the artefact's graphs the default loaded: figures of two machines compare only so
+    print(f"CPU: {cpu_name()}; onnxruntime channel block {nchwc_block()}; the default runs {default.graph}")
     print(f"{'extractor':<22}{'fps':>7}{'extract':>9}{'track':>7}{'p95':>7}{'match':>7}{'pose':>6}{'map':>6}"
           f"{'kf':>5}{'tracked':>10}")
     for r in rows:

@@ -152,7 +152,7 @@ def _export_into(claim: OutputClaim, options: ExportOptions, profile: TargetProf
         )
 
     # The CPU's channel blocks: the same values, fewer layout conversions, checked against the graph above.
-    blocks = block_graphs(deployed.model, final_model, profile.channel_blocks, images, finish)
+    blocks = block_graphs(deployed.model, profile.channel_blocks, images, finish)
     for graph in blocks:
         check_before_writing(graph.model, f"{graph_label} padded for {graph.block}-channel blocks")
         log(f"padded for onnxruntime's {graph.block}-channel blocks ({graph.file_name}): " + ", ".join(

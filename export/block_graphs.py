@@ -38,12 +38,12 @@ class BlockGraph:
         return f"model.block{self.block}.onnx"
 
 
-def block_graphs(traced: onnx.ModelProto, deployed: onnx.ModelProto, blocks: tuple[int, ...],
-                 images: list[np.ndarray], finish: Callable[[onnx.ModelProto], onnx.ModelProto]) -> list[BlockGraph]:
+def block_graphs(traced: onnx.ModelProto, blocks: tuple[int, ...], images: list[np.ndarray],
+                 finish: Callable[[onnx.ModelProto], onnx.ModelProto]) -> list[BlockGraph]:
     """For each of ``blocks``, ``traced`` (the float32 graph) padded by `pad_pooled_channels` and passed through
     ``finish`` (the FP16 conversion, or nothing); kept where a chain was padded. Each kept graph runs beside
-    ``deployed`` (``finish`` of ``traced``) on ``images`` [1, 1, H, W]: an output differing by more than
-    `MAX_BLOCK_DIFF` is an `ExportError`."""
+    ``finish(traced)``, the graph deployed as model.onnx, on ``images`` [1, 1, H, W]: an output differing by more
+    than `MAX_BLOCK_DIFF` is an `ExportError`."""
     padded = []
     for block in blocks:
         model, chains = pad_pooled_channels(traced, block)
@@ -51,7 +51,7 @@ def block_graphs(traced: onnx.ModelProto, deployed: onnx.ModelProto, blocks: tup
             padded.append((block, finish(model), chains))
     if not padded:
         return []
-    base = cpu_session(deployed)
+    base = cpu_session(finish(traced))
     expected = [base.run(None, {"image": image}) for image in images]
     graphs = []
     for block, model, chains in padded:

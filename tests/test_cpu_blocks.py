@@ -19,8 +19,11 @@ def test_the_block_follows_the_cpu(tmp_path) -> None:
     assert nchwc_block({"sse4_2", "avx2", "fma"}, "x86_64") == 8
     assert nchwc_block({"asimd", "fp"}, "aarch64") == 1  # onnxruntime blocks channels on x86 only
     cpuinfo = tmp_path / "cpuinfo"
-    cpuinfo.write_text("processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f\n\nprocessor\t: 1\nflags\t\t: fpu\n")
+    cpuinfo.write_text("processor\t: 0\nmodel name\t: AMD EPYC 7B13\nflags\t\t: fpu sse2 avx2 avx512f\n\n"
+                       "processor\t: 1\nflags\t\t: fpu\n")
     assert "avx512f" in cpu_blocks.cpu_flags(cpuinfo)
+    assert cpu_blocks.cpu_name(cpuinfo) == "AMD EPYC 7B13"
+    assert cpu_blocks.cpu_flags(tmp_path / "missing") == set() and cpu_blocks.cpu_name(tmp_path / "missing")
 
 
 def test_an_artefact_names_the_graph_for_each_block() -> None:

@@ -18,17 +18,27 @@ from typing import Any
 X86_MACHINES = ("x86_64", "amd64", "i386", "i686", "x86")
 
 
-def cpu_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> set[str]:
-    """The first processor's feature flags from ``cpuinfo`` (Linux); empty where there is no such file."""
+def _cpuinfo_field(cpuinfo: Path, keys: tuple[str, ...]) -> str | None:
+    """The first processor's value of the first of ``keys`` it lists in ``cpuinfo`` (Linux); None without one."""
     try:
         text = cpuinfo.read_text(errors="replace")
     except OSError:
-        return set()
+        return None
     for line in text.splitlines():
         key, _, value = line.partition(":")
-        if key.strip() in ("flags", "Features"):
-            return set(value.split())
-    return set()
+        if key.strip() in keys:
+            return value.strip()
+    return None
+
+
+def cpu_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> set[str]:
+    """The first processor's feature flags from ``cpuinfo`` (Linux); empty where there is no such file."""
+    return set((_cpuinfo_field(cpuinfo, ("flags", "Features")) or "").split())
+
+
+def cpu_name(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The processor's model name from ``cpuinfo`` (Linux), else what `platform` knows."""
+    return _cpuinfo_field(cpuinfo, ("model name",)) or platform.processor() or platform.machine()
 
 
 def nchwc_block(flags: set[str] | None = None, machine: str | None = None) -> int:

@@ -39,8 +39,8 @@ def fit_rotation(rays_a: np.ndarray, rays_b: np.ndarray) -> np.ndarray:
 
 
 def rotation_residuals(rotation: np.ndarray, rays_a: np.ndarray, rays_b: np.ndarray) -> np.ndarray:
-    """Angle (radians) between each rotated ray of view a and its ray in view b, [N]."""
-    cosine = np.clip(np.sum((rays_a @ rotation.T) * rays_b, axis=1), -1.0, 1.0)
+    """Angle (radians) between each rotated ray of view a and its ray in view b, [N]; for rotations [S, 3, 3], [S, N]."""
+    cosine = np.clip(np.sum((rays_a @ np.swapaxes(rotation, -1, -2)) * rays_b, axis=-1), -1.0, 1.0)
     return np.arccos(cosine)
 
 
@@ -64,8 +64,8 @@ def fit_rotation_ransac(pts_a: np.ndarray, pts_b: np.ndarray, threshold: float,
     # Every sample's rotation and inlier count at once (one sample at a time cost 10 ms a call at 500 tracks);
     # the first sample with the most inliers wins, as in a sequential loop.
     rotations = fit_rotation(rays_a[pairs], rays_b[pairs])
-    cosines = np.clip(np.sum((rays_a @ np.swapaxes(rotations, 1, 2)) * rays_b, axis=2), -1.0, 1.0)
-    best = rotations[int(np.argmax(np.count_nonzero(np.arccos(cosines) < threshold, axis=1)))]
+    inliers = np.count_nonzero(rotation_residuals(rotations, rays_a, rays_b) < threshold, axis=1)
+    best = rotations[int(np.argmax(inliers))]
     inliers = rotation_residuals(best, rays_a, rays_b) < threshold
     if np.count_nonzero(inliers) >= 2:
         best = fit_rotation(rays_a[inliers], rays_b[inliers])
